@@ -1,0 +1,71 @@
+"""Metrics against hand-computed values."""
+
+import math
+
+import pytest
+import torch
+
+from src.geometry import euler_to_matrix, se3_from_rt
+from src.metrics import METRIC_NAMES, RegistrationMetrics, chamfer_distance
+
+
+def _transform(angles_deg, trans, seq="zyx"):
+    rot = euler_to_matrix(torch.tensor(angles_deg, dtype=torch.float64), seq, degrees=True)
+    return se3_from_rt(rot, torch.tensor(trans, dtype=torch.float64))
+
+
+def test_hand_computed_values():
+    # Pair 1: prediction off by 3 degrees about z only, translation off by (0.03, 0.04, 0).
+    gt1, pred1 = _transform([10.0, 0, 0], [0.1, 0, 0]), _transform([13.0, 0, 0], [0.13, 0.04, 0])
+    # Pair 2: perfect.
+    gt2 = _transform([5.0, 20.0, -7.0], [0.0, 0.2, -0.1])
+    pred, gt = torch.stack([pred1, gt2]), torch.stack([gt1, gt2])
+    points = torch.zeros(2, 4, 3)
+    metric = RegistrationMetrics(euler_seq="zyx")
+    metric.update(pred, gt, points, points)
+    out = metric.compute()
+    assert set(out) == set(METRIC_NAMES)
+    # Euler errors: [3,0,0] and [0,0,0] -> squared sum 9 over 6 components.
+    assert out["RMSE(R)"] == pytest.approx(math.sqrt(9 / 6))
+    assert out["MAE(R)"] == pytest.approx(3 / 6)
+    assert out["RMSE(t)"] == pytest.approx(math.sqrt((0.03**2 + 0.04**2) / 6))
+    assert out["MAE(t)"] == pytest.approx((0.03 + 0.04) / 6)
+    assert out["Error(R)"] == pytest.approx(3 / 2, abs=1e-6)
+    assert out["Error(t)"] == pytest.approx(0.05 / 2)
+    assert out["success(1deg,0.01)"] == pytest.approx(0.5)
+    assert out["success(5deg,0.05)"] == pytest.approx(0.5)  # pair 1 has Error(t) = 0.05, not < 0.05
+    assert out["score"] == pytest.approx(0.01 * 1.5 + 0.025, abs=1e-8)
+
+
+def test_accumulates_sums_not_mean_of_means():
+    gt = _transform([0.0, 0, 0], [0, 0, 0]).unsqueeze(0)
+    bad = _transform([0.0, 0, 0], [0.3, 0, 0]).unsqueeze(0)
+    metric = RegistrationMetrics()
+    points = torch.zeros(1, 2, 3)
+    metric.update(bad, gt, points, points)  # batch of 1 pair with error 0.3
+    metric.update(gt.repeat(3, 1, 1), gt.repeat(3, 1, 1), points.repeat(3, 1, 1), points.repeat(3, 1, 1))
+    assert metric.compute()["Error(t)"] == pytest.approx(0.3 / 4)  # mean of means would give 0.15
+
+
+def test_xyz_convention_differs_from_zyx():
+    gt = _transform([0.0, 0, 0], [0, 0, 0], "xyz").unsqueeze(0)
+    pred = _transform([0.0, 0, 4.0], [0, 0, 0], "xyz").unsqueeze(0)  # 4 degrees about z
+    points = torch.zeros(1, 2, 3)
+    xyz, zyx = RegistrationMetrics("xyz"), RegistrationMetrics("zyx")
+    xyz.update(pred, gt, points, points)
+    zyx.update(pred, gt, points, points)
+    assert xyz.compute()["MAE(R)"] == pytest.approx(4 / 3)
+    assert zyx.compute()["MAE(R)"] == pytest.approx(4 / 3)  # single-axis: same magnitude, other slot
+    assert xyz.sq_euler == pytest.approx(zyx.sq_euler)
+
+
+def test_chamfer_hand_computed():
+    a = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]])
+    b = torch.tensor([[[0.0, 0, 0]]])
+    # a->b: (0 + 1)/2 = 0.5 ; b->a: 0
+    assert chamfer_distance(a, b).item() == pytest.approx(0.5)
+
+
+def test_rejects_unknown_convention():
+    with pytest.raises(ValueError, match="euler_seq"):
+        RegistrationMetrics("abc")
