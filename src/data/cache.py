@@ -1,0 +1,283 @@
+"""The on-disk dataset cache: one compact format for every source.
+
+Layout of ``<cache_root>/<dataset>/``::
+
+    manifest.json
+    {split}_points.npy    float32 (N, S, P, 3)   S samplings of P points per shape
+    {split}_normals.npy   float32 (N, S, P, 3)   optional
+    {split}_labels.npy    int64   (N,)           index into manifest["categories"]
+
+The manifest records ``format_version``, ``dataset``, ``source_layout``, ``pair_sampling``,
+``categories``, ``halves``, ``splits`` (count, shape, shape_names, per-file name/bytes/sha256),
+``missing_splits`` (count, examples, message), ``sampling``, ``source``, ``content_hash`` and,
+last, ``complete: true``. A cache is written into a temporary sibling folder and renamed into
+place, so an interrupted build never leaves a valid-looking cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from src.errors import DatasetError
+
+FORMAT_VERSION = 1
+DATASETS: tuple[str, ...] = ("modelnet40", "modelnet40_resampled", "synthetic")
+SOURCE_LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "procedural")
+PAIR_SAMPLINGS: tuple[str, ...] = ("independent_samplings", "single_sampling", "disjoint_subsets")
+"""``independent_samplings``: S >= 2 mesh samplings, TS picks 2 of S, OS uses one.
+``single_sampling``: S = 1, only OS possible. ``disjoint_subsets``: S = 1 dense points, TS = two
+disjoint random subsets, OS = one subset for both clouds."""
+REQUIRED_FIELDS: tuple[str, ...] = (
+    "dataset", "source_layout", "pair_sampling", "categories", "halves", "sampling", "source",
+)
+_ARRAYS: tuple[str, ...] = ("points", "normals", "labels")
+
+
+def default_cache_root() -> Path:
+    """``$OMNET_CACHE_DIR``, else ``~/.cache/omnet-registration``."""
+    env = os.environ.get("OMNET_CACHE_DIR")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "omnet-registration"
+
+
+def prepare_hint(dataset: str) -> str:
+    """How to (re)build the cache of ``dataset``."""
+    if dataset == "synthetic":
+        return "run `python -m src.data.prepare synthetic`"
+    return (
+        f"run `python -m src.data.prepare {dataset} --source PATH` "
+        "(or use data=synthetic for the embedded synthetic default)"
+    )
+
+
+@dataclass(frozen=True)
+class CacheSplit:
+    """One split: ``points``/``normals`` ``(N, S, P, 3)`` float32, ``labels`` ``(N,)`` int64."""
+
+    name: str
+    points: np.ndarray
+    normals: np.ndarray | None
+    labels: np.ndarray
+    shape_names: list[str]
+
+
+class Cache:
+    """A validated cache folder; splits are memory-mapped on access."""
+
+    def __init__(self, root: Path, manifest: dict):
+        self.root = Path(root)
+        self.manifest = manifest
+
+    @property
+    def dataset(self) -> str:
+        return self.manifest["dataset"]
+
+    @property
+    def categories(self) -> list[str]:
+        return self.manifest["categories"]
+
+    @property
+    def halves(self) -> dict[str, list[str]]:
+        return self.manifest["halves"]
+
+    @property
+    def pair_sampling(self) -> str:
+        return self.manifest["pair_sampling"]
+
+    @property
+    def available_splits(self) -> list[str]:
+        return list(self.manifest["splits"])
+
+    def split(self, name: str) -> CacheSplit:
+        """Memory-mapped arrays of a built split; an unbuilt split raises its missing-files message."""
+        missing = self.manifest.get("missing_splits", {})
+        if name in missing:
+            raise DatasetError(missing[name]["message"])
+        if name not in self.manifest["splits"]:
+            raise DatasetError(
+                f"split '{name}' is not in the cache at {self.root} (available: {', '.join(self.available_splits)})"
+            )
+        info = self.manifest["splits"][name]
+        arrays = {key: np.load(self.root / f["name"], mmap_mode="r") for key, f in info["files"].items()}
+        return CacheSplit(name, arrays["points"], arrays.get("normals"), arrays["labels"], info["shape_names"])
+
+
+def file_sha256(path: Path, chunk_size: int = 1 << 22) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(chunk_size):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _content_hash(splits: Mapping[str, dict]) -> str:
+    lines = sorted(f"{f['name']}:{f['sha256']}" for s in splits.values() for f in s["files"].values())
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
+
+
+def _read_manifest(path: Path, verify: bool) -> dict:
+    """The manifest of a complete, intact cache; otherwise DatasetError naming the cause."""
+    manifest_file = path / "manifest.json"
+    if not path.is_dir():
+        raise DatasetError(f"no dataset cache at {path}")
+    if not manifest_file.is_file():
+        raise DatasetError(f"{path} has no manifest.json (not a dataset cache)")
+    try:
+        manifest = json.loads(manifest_file.read_text())
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{manifest_file} is unreadable ({e})") from e
+    if manifest.get("complete") is not True:
+        raise DatasetError(f"the cache at {path} is incomplete (interrupted build)")
+    if manifest.get("format_version") != FORMAT_VERSION:
+        version = manifest.get("format_version")
+        raise DatasetError(f"the cache at {path} has format_version {version}, expected {FORMAT_VERSION}")
+    if _content_hash(manifest["splits"]) != manifest.get("content_hash"):
+        raise DatasetError(f"{manifest_file} is corrupt (content_hash does not match its file hashes)")
+    for info in manifest["splits"].values():
+        for f in info["files"].values():
+            file = path / f["name"]
+            if not file.is_file():
+                raise DatasetError(f"cache file {file} is missing")
+            size = file.stat().st_size
+            if size != f["bytes"]:
+                raise DatasetError(f"cache file {file} has {size} bytes, expected {f['bytes']} (truncated or corrupt)")
+            if verify and file_sha256(file) != f["sha256"]:
+                raise DatasetError(f"cache file {file} is corrupt (sha256 mismatch)")
+    return manifest
+
+
+def open_cache(path: Path, verify: bool = False) -> Cache:
+    """Open a cache folder (sizes checked; sha256 too with ``verify``).
+
+    Raises one-line :class:`DatasetError` naming the cause and how to prepare the dataset.
+    """
+    path = Path(path)
+    try:
+        return Cache(path, _read_manifest(path, verify))
+    except DatasetError as e:
+        raise DatasetError(f"{e}; {prepare_hint(path.name)}") from None
+
+
+def _matches(actual: object, expected: object) -> bool:
+    """``expected`` is contained in ``actual``: dicts compare key by key, other values by equality."""
+    if isinstance(expected, Mapping):
+        return isinstance(actual, Mapping) and all(k in actual and _matches(actual[k], v) for k, v in expected.items())
+    return actual == expected
+
+
+def check_cache(path: Path, expected: Mapping) -> str | None:
+    """``None`` when the cache at ``path`` is complete, its hashes verify and its manifest contains
+    ``expected`` (a nested sub-dict, e.g. ``{"sampling": {...}}``); else the reason it is not."""
+    try:
+        manifest = _read_manifest(Path(path), verify=True)
+    except DatasetError as e:
+        return str(e)
+    differing = [key for key, value in expected.items() if not _matches(manifest.get(key), value)]
+    return f"the cache at {path} was built with different {', '.join(differing)}" if differing else None
+
+
+def is_cache_valid(path: Path, expected: Mapping) -> bool:
+    """Complete, hashes verified and the manifest contains ``expected`` (see :func:`check_cache`)."""
+    return check_cache(path, expected) is None
+
+
+class CacheWriter:
+    """Streams splits into a temporary sibling folder; :meth:`commit` renames it into place.
+
+    ``manifest_fields`` holds :data:`REQUIRED_FIELDS` and optionally ``missing_splits``.
+    Use as a context manager: an exception discards the temporary folder.
+    """
+
+    def __init__(self, out_dir: Path, manifest_fields: Mapping):
+        absent = [k for k in REQUIRED_FIELDS if k not in manifest_fields]
+        if absent:
+            raise ValueError(f"manifest_fields lacks {absent}")
+        self.out_dir = Path(out_dir)
+        self.out_dir.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp_dir = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.tmp-", dir=self.out_dir.parent))
+        self.tmp_dir.chmod(0o755)  # mkdtemp makes it private
+        self.fields = dict(manifest_fields)
+        self._splits: dict[str, dict] = {}
+        self._arrays: dict[str, dict[str, np.ndarray]] = {}
+
+    def add_split(
+        self, name: str, shape: tuple[int, int, int, int], labels: np.ndarray, shape_names: list[str], normals: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Create a split of ``shape`` ``(N, S, P, 3)``; returns writable memmaps ``(points, normals)``
+        for the caller to fill (``normals`` is ``None`` unless requested)."""
+        labels = np.asarray(labels, dtype=np.int64)
+        if len(shape) != 4 or shape[3] != 3 or labels.shape != (shape[0],) or len(shape_names) != shape[0]:
+            raise ValueError(f"split {name}: shape {shape}, {labels.shape} labels, {len(shape_names)} names disagree")
+        np.save(self.tmp_dir / f"{name}_labels.npy", labels)
+        keys = ("points", "normals") if normals else ("points",)
+        self._arrays[name] = {
+            key: np.lib.format.open_memmap(self.tmp_dir / f"{name}_{key}.npy", "w+", np.float32, shape) for key in keys
+        }
+        self._splits[name] = {"count": shape[0], "shape": list(shape), "shape_names": list(shape_names)}
+        return self._arrays[name]["points"], self._arrays[name].get("normals")
+
+    def commit(self) -> Cache:
+        """Hash the files, write the manifest (``complete`` last) and move the cache into place."""
+        for name, arrays in self._arrays.items():
+            for array in arrays.values():
+                array.flush()
+            files = [f"{name}_{key}.npy" for key in _ARRAYS]
+            self._splits[name]["files"] = {
+                key: self._describe(file) for key, file in zip(_ARRAYS, files) if (self.tmp_dir / file).exists()
+            }
+        self._arrays.clear()
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            **self.fields,
+            "missing_splits": self.fields.get("missing_splits", {}),
+            "splits": self._splits,
+            "content_hash": _content_hash(self._splits),
+            "complete": True,
+        }
+        (self.tmp_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
+        old = None
+        if self.out_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.old-", dir=self.out_dir.parent))
+            os.replace(self.out_dir, old / "cache")
+        os.replace(self.tmp_dir, self.out_dir)
+        if old is not None:
+            shutil.rmtree(old)
+        return Cache(self.out_dir, manifest)
+
+    def _describe(self, file_name: str) -> dict:
+        path = self.tmp_dir / file_name
+        return {"name": file_name, "bytes": path.stat().st_size, "sha256": file_sha256(path)}
+
+    def abort(self) -> None:
+        self._arrays.clear()
+        shutil.rmtree(self.tmp_dir, ignore_errors=True)
+
+    def __enter__(self) -> CacheWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+
+
+def write_cache(out_dir: Path, manifest_fields: Mapping, splits: Mapping[str, CacheSplit]) -> Cache:
+    """Write in-memory splits (``{split name: CacheSplit}``) as a cache; see :class:`CacheWriter`
+    for ``manifest_fields``. Large datasets should stream through :class:`CacheWriter` instead."""
+    with CacheWriter(out_dir, manifest_fields) as writer:
+        for name, split in splits.items():
+            points, normals = writer.add_split(
+                name, split.points.shape, split.labels, split.shape_names, normals=split.normals is not None
+            )
+            points[:] = split.points
+            if normals is not None:
+                normals[:] = split.normals
+        return writer.commit()

@@ -1,0 +1,411 @@
+"""Build the dataset cache: ``python -m src.data.prepare {modelnet40,modelnet40_resampled,synthetic}``.
+
+* ``modelnet40 --source PATH``: the Princeton mesh archive (S=40 samplings x 2048 points per mesh,
+  ``independent_samplings``) or PointNet's h5 archive (S=1, ``single_sampling``), folder or .zip.
+* ``modelnet40_resampled --source PATH``: PointNet++'s ``modelnet40_normal_resampled`` (S=1 dense
+  points + normals, ``disjoint_subsets``); a split whose listed files are absent is not built and
+  reported (count + first ids).
+* ``synthetic``: the embedded procedural default (also built on first use by :func:`ensure_cache`).
+
+``--download`` fetches the official archive into ``<cache_root>/downloads/`` first. Re-running with
+the same parameters only verifies the cache; a corrupt, partial or differently built one is rebuilt.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fcntl
+import importlib
+import itertools
+import logging
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from multiprocessing import get_context
+from pathlib import Path, PurePosixPath
+from types import ModuleType
+from urllib.parse import urlparse
+
+import numpy as np
+from tqdm import tqdm
+
+from src.data.cache import (
+    DATASETS, Cache, CacheWriter, check_cache, default_cache_root, file_sha256, open_cache, prepare_hint,
+)
+from src.data.categories import half_categories
+from src.data.download import download as download_file
+from src.data.mesh import MeshShape
+from src.data.readers import READERS, Archive, PointShape, Reader, layout_of
+from src.data.sampling import METHOD, NORMALIZATION, sample_shape
+from src.errors import DatasetError, UserError
+
+log = logging.getLogger(__name__)
+
+URLS: dict[str, str] = {
+    "princeton_off": "http://modelnet.cs.princeton.edu/ModelNet40.zip",
+    "pointnet_h5": "https://shapenet.cs.stanford.edu/media/modelnet40_ply_hdf5_2048.zip",
+    "pointnet2_resampled": "https://shapenet.cs.stanford.edu/media/modelnet40_normal_resampled.zip",
+}
+"""Official archives per layout (``--download`` uses the first layout of the dataset; ``--url``
+overrides, e.g. with the PointNet h5 archive)."""
+DATASET_LAYOUTS: dict[str, tuple[str, ...]] = {
+    "modelnet40": ("princeton_off", "pointnet_h5"),
+    "modelnet40_resampled": ("pointnet2_resampled",),
+}
+MESH_DEFAULTS = {"modelnet40": (40, 2048), "synthetic": (10, 2048)}
+"""Default ``(num_samplings, num_points)`` when sampling meshes."""
+AS_PROVIDED = "as_provided"
+
+Shape = MeshShape | PointShape
+Sampled = tuple[np.ndarray, np.ndarray | None]
+Compute = Callable[[Shape, int, dict], Sampled]
+
+
+# --- per-shape work (module level so that process-pool workers can run it) --------------------
+
+
+def _sample_mesh(shape: MeshShape, index: int, params: dict) -> Sampled:
+    """Mesh samplings without normals: the paper estimates normals after pre-processing (FGR,
+    RPMNet), so storing the faces' normals would only double the cache (12 GB for ModelNet40)."""
+    points, _ = sample_shape(shape, params["num_samplings"], params["num_points"], params["seed"], index)
+    return points, None
+
+
+def _as_provided(shape: PointShape, index: int, params: dict) -> Sampled:
+    return shape.points[None], None if shape.normals is None else shape.normals[None]
+
+
+_worker: tuple[Reader, Compute, dict] | None = None
+
+
+def _init_worker(reader: Reader, compute: Compute, params: dict) -> None:
+    global _worker
+    _worker = (reader, compute, params)
+
+
+def _run_task(task: tuple[int, object]) -> Sampled:
+    reader, compute, params = _worker
+    index, entry = task
+    return compute(reader.load(entry), index, params)
+
+
+@contextmanager
+def _shape_mapper(reader: Reader, compute: Compute, params: dict, workers: int) -> Iterator[Callable]:
+    """Yield ``map_tasks([(index, entry), ...]) -> results in order``, in a process pool when workers > 1."""
+    if workers <= 1:
+        yield lambda tasks: (compute(reader.load(entry), index, params) for index, entry in tasks)
+        return
+    pool = ProcessPoolExecutor(
+        workers, mp_context=get_context("spawn"), initializer=_init_worker, initargs=(reader, compute, params)
+    )
+    try:
+        yield lambda tasks: pool.map(_run_task, tasks, chunksize=4)
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _write_split(
+    writer: CacheWriter, split: str, names: list[str], labels: list[int], results: Iterable[Sampled], desc: str
+) -> None:
+    """Stream per-shape ``(points, normals)`` of ``(S, P, 3)`` into a new split of the cache."""
+    results = iter(tqdm(results, total=len(names), desc=desc, unit="shape", disable=None))
+    first = next(results)
+    shape = (len(names), *first[0].shape)
+    out_points, out_normals = writer.add_split(split, shape, labels, names, normals=first[1] is not None)
+    for i, (points, normals) in enumerate(itertools.chain([first], results)):
+        if points.shape != out_points.shape[1:] or (normals is None) != (out_normals is None):
+            raise DatasetError(
+                f"shape {names[i]}: points {points.shape} (normals: {normals is not None}) differ from the "
+                f"first shape's {out_points.shape[1:]} (normals: {out_normals is not None})"
+            )
+        out_points[i] = points
+        if out_normals is not None:
+            out_normals[i] = normals
+
+
+def _log_summary(cache: Cache) -> None:
+    for name, info in cache.manifest["splits"].items():
+        n, s, p, _ = info["shape"]
+        log.info(f"  {name}: {n} shapes x {s} sampling(s) x {p} points")
+    log.info(f"wrote {cache.root} ({cache.pair_sampling}, {len(cache.categories)} categories)")
+
+
+@contextmanager
+def _build_lock(out: Path) -> Iterator[None]:
+    """Serialise check-and-build of one cache across processes (e.g. DDP ranks building synthetic)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.parent / f".{out.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+def _reuse(out: Path, expected: dict, force: bool) -> Cache | None:
+    """The existing cache when valid for ``expected`` (hashes verified) and not ``force``d."""
+    if force:
+        return None
+    problem = check_cache(out, expected)
+    if problem is None:
+        log.info(f"cache up to date: {out} (hashes verified)")
+        return open_cache(out)
+    if out.exists():
+        log.info(f"rebuilding: {problem}")
+    return None
+
+
+def _reject_options(options: dict[str, object], target: str) -> None:
+    given = [flag for flag, value in options.items() if value]
+    if given:
+        raise DatasetError(f"{', '.join(given)}: not applicable to {target}")
+
+
+def _check_dataset(dataset: str) -> None:
+    if dataset not in DATASETS:
+        raise DatasetError(f"unknown dataset {dataset!r}; expected one of {', '.join(DATASETS)}")
+
+
+def _pair_sampling(num_samplings: int) -> str:
+    return "independent_samplings" if num_samplings >= 2 else "single_sampling"
+
+
+# --- ModelNet40 -----------------------------------------------------------------------------
+
+
+def source_fingerprint(source: Path) -> dict:
+    """sha256 of an archive file, or file count / total bytes / newest mtime of a folder."""
+    if source.is_file():
+        return {"sha256": file_sha256(source)}
+    stats = [p.stat() for p in source.rglob("*") if p.is_file()]
+    newest = max((s.st_mtime_ns for s in stats), default=0)
+    return {"files": len(stats), "bytes": sum(s.st_size for s in stats), "mtime_ns": newest}
+
+
+def _sampling_params(
+    layout: str, num_samplings: int | None, num_points: int | None, seed: int, limit: int | None
+) -> dict:
+    if layout == "princeton_off":
+        default_s, default_p = MESH_DEFAULTS["modelnet40"]
+        return {
+            "num_samplings": num_samplings or default_s, "num_points": num_points or default_p, "seed": seed,
+            "method": METHOD, "normalization": NORMALIZATION, "limit": limit,
+        }
+    _reject_options(
+        {"--num-samplings": num_samplings, "--num-points": num_points},
+        f"the {layout} layout (its points are stored as provided: one sampling holding all of each shape's points)",
+    )
+    return {"num_samplings": 1, "method": AS_PROVIDED, "normalization": AS_PROVIDED, "limit": limit}
+
+
+def modelnet_halves(categories: list[str]) -> dict[str, list[str]]:
+    """The official halves (axisymmetric categories kept) restricted to ``categories``."""
+    return {str(h): [c for c in half_categories(h, remove_axisymmetric=False) if c in categories] for h in (1, 2)}
+
+
+def prepare_modelnet(
+    dataset: str, source: Path, cache_root: Path, *, num_samplings: int | None = None, num_points: int | None = None,
+    seed: int = 0, workers: int = 1, force: bool = False, limit: int | None = None,
+) -> Cache:
+    """Build (or reuse) ``<cache_root>/<dataset>`` from a ModelNet40 archive (folder or .zip)."""
+    source = Path(source)
+    archive = Archive(source)
+    layout = layout_of(archive)
+    if layout not in DATASET_LAYOUTS[dataset]:
+        other = next(d for d, layouts in DATASET_LAYOUTS.items() if layout in layouts)
+        raise DatasetError(f"{source} is in the {layout} layout, which is prepared as `{other}`, not `{dataset}`")
+    sampling = _sampling_params(layout, num_samplings, num_points, seed, limit)
+    fingerprint = source_fingerprint(source)
+    out = cache_root / dataset
+    expected = {
+        "dataset": dataset, "source_layout": layout, "sampling": sampling, "source": {"fingerprint": fingerprint},
+    }
+    with _build_lock(out):
+        return _reuse(out, expected, force) or _build_modelnet(
+            out, dataset, archive, layout, sampling, fingerprint, workers, limit
+        )
+
+
+def _build_modelnet(
+    out: Path, dataset: str, archive: Archive, layout: str, sampling: dict, fingerprint: dict, workers: int,
+    limit: int | None,
+) -> Cache:
+    source = archive.path
+    reader = READERS[layout](archive)
+    for missing in reader.missing.values():
+        log.warning(missing.message)
+    if not reader.entries:
+        raise DatasetError(f"{source}: no split can be built")
+    if layout == "princeton_off":
+        compute, pair_sampling = _sample_mesh, _pair_sampling(sampling["num_samplings"])
+    else:
+        first = reader.load(next(iter(reader.entries.values()))[0])
+        sampling = {**sampling, "num_points": len(first.points)}
+        compute = _as_provided
+        pair_sampling = "single_sampling" if layout == "pointnet_h5" else "disjoint_subsets"
+    fields = {
+        "dataset": dataset, "source_layout": layout, "pair_sampling": pair_sampling,
+        "categories": reader.categories, "halves": modelnet_halves(reader.categories), "sampling": sampling,
+        "source": {"path": str(source.resolve()), "fingerprint": fingerprint},
+        "missing_splits": {split: missing.to_json() for split, missing in reader.missing.items()},
+    }
+    # h5 shapes are rows of large files: loading them in one process reads each file once.
+    workers = 1 if layout == "pointnet_h5" else workers
+    with CacheWriter(out, fields) as writer, _shape_mapper(reader, compute, sampling, workers) as map_tasks:
+        offset = 0  # shape index = position in the full split lists, so --limit keeps the first shapes' samplings
+        for split, entries in reader.entries.items():
+            tasks = list(enumerate(entries[:limit], start=offset))
+            offset += len(entries)
+            labels = [reader.categories.index(e.category) for _, e in tasks]
+            _write_split(writer, split, [e.name for _, e in tasks], labels, map_tasks(tasks), f"{dataset} {split}")
+        cache = writer.commit()
+    _log_summary(cache)
+    return cache
+
+
+# --- synthetic ------------------------------------------------------------------------------
+
+
+def build_synthetic_cache(
+    cache_root: Path | None = None, num_train_per_category: int = 24, num_test_per_category: int = 8,
+    num_samplings: int = 10, num_points: int = 2048, seed: int = 0, force: bool = False,
+) -> Cache:
+    """Build (or reuse, when valid) ``<cache_root>/synthetic`` from :mod:`src.data.synthetic`.
+
+    The generator module's sha256 is part of the source fingerprint, so editing it rebuilds the cache.
+    """
+    synthetic = importlib.import_module("src.data.synthetic")
+    out = Path(cache_root or default_cache_root()) / "synthetic"
+    sampling = {
+        "num_samplings": num_samplings, "num_points": num_points, "seed": seed, "method": METHOD,
+        "normalization": NORMALIZATION, "num_train_per_category": num_train_per_category,
+        "num_test_per_category": num_test_per_category,
+    }
+    module_file = getattr(synthetic, "__file__", None)
+    fingerprint = {"sha256": file_sha256(Path(module_file))} if module_file else {}
+    categories = list(synthetic.SYNTHETIC_CATEGORIES)
+    expected = {
+        "dataset": "synthetic", "categories": categories, "sampling": sampling, "source": {"fingerprint": fingerprint},
+    }
+    with _build_lock(out):
+        return _reuse(out, expected, force) or _build_synthetic(out, synthetic, sampling, fingerprint)
+
+
+def _build_synthetic(out: Path, synthetic: ModuleType, sampling: dict, fingerprint: dict) -> Cache:
+    categories = list(synthetic.SYNTHETIC_CATEGORIES)
+    num_train, num_test = sampling["num_train_per_category"], sampling["num_test_per_category"]
+    by_split: dict[str, list[MeshShape]] = {}
+    for shape in synthetic.generate_shapes(num_train, num_test, sampling["seed"]):
+        by_split.setdefault(shape.split, []).append(shape)
+    fields = {
+        "dataset": "synthetic", "source_layout": "procedural",
+        "pair_sampling": _pair_sampling(sampling["num_samplings"]), "categories": categories, "halves": {k: list(v) for k, v in synthetic.SYNTHETIC_HALVES.items()},
+        "sampling": sampling, "source": {"path": synthetic.__name__, "fingerprint": fingerprint},
+    }
+    with CacheWriter(out, fields) as writer:
+        offset = 0
+        for split, shapes in by_split.items():
+            results = (_sample_mesh(shape, offset + i, sampling) for i, shape in enumerate(shapes))
+            labels = [categories.index(shape.category) for shape in shapes]
+            _write_split(writer, split, [s.name for s in shapes], labels, results, f"synthetic {split}")
+            offset += len(shapes)
+        cache = writer.commit()
+    _log_summary(cache)
+    return cache
+
+
+def ensure_cache(dataset: str, cache_root: Path | None = None, **params) -> Cache:
+    """The cache of ``dataset``: synthetic is built on first use (``params`` go to
+    :func:`build_synthetic_cache`); a real dataset must have been prepared, and any ``params``
+    (e.g. ``num_points=2048``) must match its manifest's ``sampling``."""
+    root = Path(cache_root or default_cache_root())
+    if dataset == "synthetic":
+        return build_synthetic_cache(root, **params)
+    _check_dataset(dataset)
+    cache = open_cache(root / dataset)
+    for key, value in params.items():
+        if cache.manifest["sampling"].get(key) != value:
+            raise DatasetError(
+                f"the cache at {cache.root} has {key}={cache.manifest['sampling'].get(key)}, requested {value}; "
+                f"{prepare_hint(dataset)} with matching options"
+            )
+    return cache
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def prepare(
+    dataset: str, *, source: Path | None = None, cache_root: Path | None = None, num_samplings: int | None = None,
+    num_points: int | None = None, seed: int = 0, workers: int = 1, download: bool = False, url: str | None = None,
+    force: bool = False, limit: int | None = None,
+) -> Cache:
+    """What the command line does; see the module docstring."""
+    cache_root = Path(cache_root or default_cache_root())
+    if dataset == "synthetic":
+        _reject_options(
+            {"--source": source, "--download": download, "--url": url, "--limit": limit},
+            "synthetic (it is generated procedurally)",
+        )
+        default_s, default_p = MESH_DEFAULTS["synthetic"]
+        return build_synthetic_cache(
+            cache_root, num_samplings=num_samplings or default_s, num_points=num_points or default_p,
+            seed=seed, force=force,
+        )
+    _check_dataset(dataset)
+    if url and not download:
+        raise DatasetError("--url is only used with --download")
+    if download and source:
+        raise DatasetError("use either --source PATH or --download, not both")
+    if download:
+        url = url or URLS[DATASET_LAYOUTS[dataset][0]]
+        name = PurePosixPath(urlparse(url).path).name or f"{dataset}.zip"
+        source = download_file(url, cache_root / "downloads" / name)
+    if source is None:
+        archives = " or ".join(DATASET_LAYOUTS[dataset])
+        raise DatasetError(f"{dataset} needs --source PATH (a {archives} folder or .zip) or --download")
+    return prepare_modelnet(
+        dataset, Path(source), cache_root, num_samplings=num_samplings, num_points=num_points,
+        seed=seed, workers=workers, force=force, limit=limit,
+    )
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m src.data.prepare", description=__doc__.split("\n\n")[0])
+    p.add_argument("dataset", choices=DATASETS)
+    p.add_argument("--source", type=Path, help="archive folder or .zip (layout auto-detected)")
+    p.add_argument("--cache-root", type=Path, help="default: $OMNET_CACHE_DIR or ~/.cache/omnet-registration")
+    p.add_argument("--num-samplings", type=_positive_int, help="mesh samplings per shape (default 40; synthetic 10)")
+    p.add_argument("--num-points", type=_positive_int, help="points per mesh sampling (default 2048)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1, help="sampling processes")
+    p.add_argument("--download", action="store_true", help="fetch the official archive into <cache-root>/downloads/")
+    p.add_argument("--url", help="archive URL for --download (overrides the official one)")
+    p.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
+    p.add_argument("--limit", type=_positive_int, help="only the first N shapes per split (smoke tests)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
+    try:
+        prepare(
+            args.dataset, source=args.source, cache_root=args.cache_root, num_samplings=args.num_samplings,
+            num_points=args.num_points, seed=args.seed, workers=args.workers, download=args.download,
+            url=args.url, force=args.force, limit=args.limit,
+        )
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,425 @@
+"""Readers for the three ModelNet40 layouts, each from a folder or straight from its .zip.
+
+* ``princeton_off``: the Princeton mesh archive ``ModelNet40/<category>/{train,test}/<name>.off``.
+* ``pointnet_h5``: PointNet's ``modelnet40_ply_hdf5_2048`` (``ply_data_{train,test}*.h5``).
+* ``pointnet2_resampled``: PointNet++'s ``modelnet40_normal_resampled`` (the full archive or any
+  subset of its category folders).
+
+A reader lists its shapes as :class:`ShapeEntry` per split (``entries``), reports the splits it
+cannot build (``missing``) and loads one entry at a time (``load``). Readers are picklable, so
+process-pool workers can load entries themselves.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import h5py
+import numpy as np
+
+from src.data.categories import MODELNET40_CATEGORIES
+from src.data.mesh import MeshShape
+from src.errors import DatasetError
+
+LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled")
+SPLITS: tuple[str, ...] = ("train", "test")
+MISSING_EXAMPLES = 10
+"""How many missing shape ids a :class:`MissingSplit` keeps (the message shows the first 5)."""
+
+
+@dataclass(frozen=True)
+class PointShape:
+    """A shape given as points (no mesh): ``points`` and optional ``normals`` are ``(N, 3)`` float32."""
+
+    name: str
+    category: str
+    split: str
+    points: np.ndarray
+    normals: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class ShapeEntry:
+    """Where one shape lives: archive member (and row ``index`` inside it, for h5 files)."""
+
+    name: str
+    category: str
+    split: str
+    member: str
+    index: int = 0
+
+
+@dataclass(frozen=True)
+class MissingSplit:
+    """A split that cannot be built: ``count`` shape ids without a file (first ``examples``)."""
+
+    split: str
+    count: int
+    examples: list[str]
+    message: str
+
+    def to_json(self) -> dict:
+        return {"count": self.count, "examples": self.examples, "message": self.message}
+
+
+class Archive:
+    """A folder or a .zip file, read by POSIX paths relative to it (no extraction to disk)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        if not self.path.exists():
+            raise DatasetError(f"source {self.path} does not exist")
+        self.is_zip = self.path.is_file()
+        if self.is_zip and not zipfile.is_zipfile(self.path):
+            raise DatasetError(f"source {self.path} is neither a folder nor a .zip archive")
+        names = self._zip().namelist() if self.is_zip else self._walk()
+        self.files: list[str] = sorted(n for n in names if not n.endswith("/") and not _is_junk(n))
+        self.file_set = frozenset(self.files)
+
+    def _walk(self) -> list[str]:
+        return [
+            Path(folder, f).relative_to(self.path).as_posix()
+            for folder, _, files in os.walk(self.path)
+            for f in files
+        ]
+
+    def _zip(self) -> zipfile.ZipFile:
+        if getattr(self, "_handle", None) is None:
+            self._handle = zipfile.ZipFile(self.path)
+        return self._handle
+
+    def read(self, name: str) -> bytes:
+        try:
+            return self._zip().read(name) if self.is_zip else (self.path / name).read_bytes()
+        except (KeyError, OSError, zipfile.BadZipFile) as e:
+            raise DatasetError(f"cannot read {name} from {self.path}: {e}") from e
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_handle"}
+
+
+def _is_junk(name: str) -> bool:
+    """macOS metadata that zip tools add (``__MACOSX/``, ``._file``)."""
+    return any(part == "__MACOSX" or part.startswith("._") for part in name.split("/"))
+
+
+def _join(root: str, *parts: str) -> str:
+    return str(PurePosixPath(root, *parts)) if root else str(PurePosixPath(*parts))
+
+
+def _parent(name: str) -> str:
+    """The folder of an archive path, ``""`` at the top level."""
+    return name.rpartition("/")[0]
+
+
+def _lines(data: bytes) -> list[str]:
+    return [s for line in data.decode("utf-8").splitlines() if (s := line.strip())]
+
+
+class Reader:
+    """Common interface: ``categories`` present (label = index), ``entries`` per buildable split,
+    ``missing`` splits and ``load``."""
+
+    layout: str
+
+    def __init__(self, archive: Archive):
+        self.archive = archive
+        self.categories: list[str] = []
+        self.entries: dict[str, list[ShapeEntry]] = {}
+        self.missing: dict[str, MissingSplit] = {}
+
+    def _set_splits(self, entries: dict[str, list[ShapeEntry]]) -> None:
+        """Keep non-empty splits; an empty split is reported as missing, never dropped silently."""
+        for split in SPLITS:
+            if entries.get(split):
+                self.entries[split] = entries[split]
+            elif split not in self.missing:
+                message = f"split '{split}' is not available: {self.archive.path} has no {split} shapes"
+                self.missing[split] = MissingSplit(split, 0, [], message)
+
+    def load(self, entry: ShapeEntry) -> MeshShape | PointShape:
+        raise NotImplementedError
+
+    def iter_shapes(self, split: str, limit: int | None = None) -> Iterator[MeshShape | PointShape]:
+        """Load the shapes of a buildable split in order (the first ``limit`` only, if given)."""
+        if split in self.missing:
+            raise DatasetError(self.missing[split].message)
+        for entry in self.entries[split][:limit]:
+            yield self.load(entry)
+
+
+# --- Princeton OFF meshes -------------------------------------------------------------------
+
+_OFF_HEADER = re.compile(r"\s*OFF\s*(\d+)\s+(\d+)\s+(\d+)")
+
+
+def parse_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Parse an OFF file into ``(vertices (V,3) float64, faces (F,3) int64)``.
+
+    Handles the header glued to the counts (``OFF490 518 0``), comments and blank lines, and
+    polygons with more than 3 vertices (fan-triangulated). Triangle meshes are parsed in one
+    vectorised pass.
+    """
+    text = data.decode("latin-1")
+    if "#" in text:
+        text = "\n".join(line.split("#", 1)[0] for line in text.splitlines())
+    header = _OFF_HEADER.match(text)
+    if header is None:
+        raise DatasetError(f"{name}: not an OFF file (expected 'OFF' and the vertex/face/edge counts)")
+    num_vertices, num_faces = int(header[1]), int(header[2])
+    body = text[header.end():]
+    try:
+        values = np.fromstring(body, sep=" ")
+    except ValueError as e:
+        raise DatasetError(f"{name}: malformed OFF body ({e})") from e
+    if values.size < 3 * num_vertices + 4 * num_faces:
+        raise DatasetError(f"{name}: truncated OFF file (header announces {num_vertices} vertices, {num_faces} faces)")
+    vertices = values[: 3 * num_vertices].reshape(-1, 3)
+    face_values = values[3 * num_vertices:]
+    if face_values.size == 4 * num_faces and np.all(face_values[::4] == 3):
+        faces = face_values.reshape(-1, 4)[:, 1:].astype(np.int64)
+    else:
+        faces = _polygon_faces(body, num_vertices, num_faces, name)
+    if faces.size and (faces.min() < 0 or faces.max() >= num_vertices):
+        raise DatasetError(f"{name}: face index out of range for {num_vertices} vertices")
+    return vertices, faces
+
+
+def _polygon_faces(body: str, num_vertices: int, num_faces: int, name: str) -> np.ndarray:
+    """Fan-triangulate general polygon lines ``n i1 ... in [colour...]`` (one face per line)."""
+    lines = [line.split() for line in body.splitlines() if line.strip()]
+    face_lines = lines[num_vertices: num_vertices + num_faces]
+    if len(face_lines) != num_faces:
+        raise DatasetError(f"{name}: expected {num_faces} face lines, found {len(face_lines)}")
+    triangles = []
+    for tokens in face_lines:
+        n = int(tokens[0])
+        if n < 3 or len(tokens) < n + 1:
+            raise DatasetError(f"{name}: malformed face line {' '.join(tokens)!r}")
+        poly = np.asarray(tokens[1: n + 1], dtype=np.int64)
+        triangles.append(np.stack([np.full(n - 2, poly[0]), poly[1:-1], poly[2:]], axis=1))
+    return np.concatenate(triangles)
+
+
+class PrincetonOffReader(Reader):
+    """``<...>/<category>/{train,test}/<name>.off`` meshes; yields :class:`MeshShape`."""
+
+    layout = "princeton_off"
+    PATTERN = re.compile(r"(?:^|/)([^/]+)/(train|test)/([^/]+)\.off$", re.IGNORECASE)
+
+    def __init__(self, archive: Archive):
+        super().__init__(archive)
+        matches = [(m, f) for f in archive.files if (m := self.PATTERN.search(f))]
+        self.categories = _ordered({m[1] for m, _ in matches})
+        entries: dict[str, list[ShapeEntry]] = {s: [] for s in SPLITS}
+        for m, f in sorted(matches, key=lambda mf: (self.categories.index(mf[0][1]), mf[0][3])):
+            entries[m[2].lower()].append(ShapeEntry(m[3], m[1], m[2].lower(), f))
+        self._set_splits(entries)
+
+    def load(self, entry: ShapeEntry) -> MeshShape:
+        vertices, faces = parse_off(self.archive.read(entry.member), entry.member)
+        return MeshShape(entry.name, entry.category, entry.split, vertices, faces)
+
+
+def _ordered(categories: set[str]) -> list[str]:
+    """ModelNet40 order first, then any other category names sorted."""
+    known = [c for c in MODELNET40_CATEGORIES if c in categories]
+    return known + sorted(categories - set(known))
+
+
+# --- PointNet h5 ----------------------------------------------------------------------------
+
+
+class PointNetH5Reader(Reader):
+    """``ply_data_{train,test}<k>.h5`` (``data`` (B,2048,3), ``label`` (B,1), optional ``normal``)
+    plus ``shape_names.txt``; shape ids come from ``ply_data_<split>_<k>_id2file.json`` when present."""
+
+    layout = "pointnet_h5"
+    PATTERN = re.compile(r"(?:^|/)ply_data_(train|test)(\d*)\.h5$")
+
+    def __init__(self, archive: Archive):
+        super().__init__(archive)
+        files = sorted(
+            ((m[1], int(m[2] or 0), f) for f in archive.files if (m := self.PATTERN.search(f))),
+        )
+        root = _parent(files[0][2])
+        names_file = _join(root, "shape_names.txt")
+        if names_file not in archive.file_set:
+            raise DatasetError(f"{archive.path}: {names_file} not found next to the ply_data_*.h5 files")
+        shape_names = _lines(archive.read(names_file))
+        self._cached: tuple[str, dict[str, np.ndarray]] | None = None
+        entries: dict[str, list[ShapeEntry]] = {s: [] for s in SPLITS}
+        for split, k, member in files:
+            labels = self._arrays(member)["label"].reshape(-1)
+            if labels.size and (labels.min() < 0 or labels.max() >= len(shape_names)):
+                raise DatasetError(f"{member}: labels outside the {len(shape_names)} names of {names_file}")
+            ids = self._shape_ids(_join(root, f"ply_data_{split}_{k}_id2file.json"), len(labels))
+            for i, label in enumerate(labels):
+                category = shape_names[label]
+                name = ids[i] if ids else f"{category}_{split}{k}_{i:04d}"
+                entries[split].append(ShapeEntry(name, category, split, member, i))
+        present = {e.category for split_entries in entries.values() for e in split_entries}
+        self.categories = [c for c in shape_names if c in present]
+        self._set_splits(entries)
+
+    def _shape_ids(self, json_file: str, count: int) -> list[str] | None:
+        if json_file not in self.archive.file_set:
+            return None
+        ids = json.loads(self.archive.read(json_file))
+        if not isinstance(ids, list) or len(ids) != count:
+            raise DatasetError(f"{json_file}: expected a list of {count} file names")
+        return [PurePosixPath(i).stem for i in ids]
+
+    def _arrays(self, member: str) -> dict[str, np.ndarray]:
+        """All datasets of one h5 file (the last file read stays cached)."""
+        if self._cached is None or self._cached[0] != member:
+            source = io.BytesIO(self.archive.read(member)) if self.archive.is_zip else self.archive.path / member
+            try:
+                with h5py.File(source, "r") as f:
+                    arrays = {k: f[k][()] for k in ("data", "label", "normal") if k in f}
+            except OSError as e:
+                raise DatasetError(f"{member}: unreadable h5 file ({e})") from e
+            if "data" not in arrays or "label" not in arrays:
+                raise DatasetError(f"{member}: expected h5 datasets 'data' and 'label'")
+            self._cached = (member, arrays)
+        return self._cached[1]
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_cached": None}
+
+    def load(self, entry: ShapeEntry) -> PointShape:
+        arrays = self._arrays(entry.member)
+        points = arrays["data"][entry.index].astype(np.float32)
+        normals = arrays["normal"][entry.index].astype(np.float32) if "normal" in arrays else None
+        return PointShape(entry.name, entry.category, entry.split, points, normals)
+
+
+# --- PointNet++ normal_resampled ------------------------------------------------------------
+
+
+def parse_resampled(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Parse ``x,y,z,nx,ny,nz`` lines into ``(points, normals)``, both ``(N, 3)`` float32.
+
+    A malformed or non-finite line raises :class:`DatasetError` naming the file and line number.
+    """
+    try:
+        values = np.loadtxt(io.BytesIO(data), delimiter=",", dtype=np.float32, ndmin=2)
+        ok = values.shape[1] == 6 and np.isfinite(values).all()
+    except ValueError:
+        ok = False
+    if not ok or len(values) == 0:
+        raise DatasetError(f"{name}: {_first_bad_line(data)}")
+    return values[:, :3], values[:, 3:]
+
+
+def _first_bad_line(data: bytes) -> str:
+    """Describe the first line that is not 6 finite comma-separated numbers (error path only)."""
+    for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            values = [float(v) for v in line.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 6 or not all(np.isfinite(values)):
+            return f"line {number} is malformed, expected 'x,y,z,nx,ny,nz': {line.strip()[:80]!r}"
+    return "no points (empty file)"
+
+
+class ResampledReader(Reader):
+    """``modelnet40_shape_names.txt``, ``modelnet40_{train,test}.txt`` and ``<category>/<id>.txt``.
+
+    Categories whose folder is absent are not part of the archive; a split whose list names
+    absent files of present categories is reported in ``missing`` (count + first ids).
+    """
+
+    layout = "pointnet2_resampled"
+    NAMES_FILE = "modelnet40_shape_names.txt"
+    ID = re.compile(r"(.+)_\d+")
+
+    def __init__(self, archive: Archive):
+        super().__init__(archive)
+        names_file = min((f for f in archive.files if PurePosixPath(f).name == self.NAMES_FILE), key=len)
+        root = _parent(names_file)
+        folders = {_parent(f).removeprefix(f"{root}/" if root else "") for f in archive.files}
+        self.categories = [c for c in _lines(archive.read(names_file)) if c in folders]
+        if not self.categories:
+            raise DatasetError(f"{archive.path}: none of the categories of {names_file} has a folder")
+        entries: dict[str, list[ShapeEntry]] = {}
+        for split in SPLITS:
+            list_file = _join(root, f"modelnet40_{split}.txt")
+            if list_file not in archive.file_set:
+                continue
+            listed = [(shape_id, self._category(shape_id, list_file)) for shape_id in _lines(archive.read(list_file))]
+            entries[split] = [
+                ShapeEntry(shape_id, category, split, _join(root, category, f"{shape_id}.txt"))
+                for shape_id, category in listed
+                if category in self.categories
+            ]
+            absent = [e.name for e in entries[split] if e.member not in archive.file_set]
+            if absent:
+                self.missing[split] = self._missing_files(split, absent, len(entries[split]), list_file)
+                del entries[split]
+        self._set_splits(entries)
+
+    def _missing_files(self, split: str, ids: list[str], total: int, listed_in: str) -> MissingSplit:
+        shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
+        message = (
+            f"split '{split}' is not built: {len(ids)} of {total} shapes listed in {listed_in} "
+            f"are missing from {self.archive.path} (first: {shown})"
+        )
+        return MissingSplit(split, len(ids), ids[:MISSING_EXAMPLES], message)
+
+    def _category(self, shape_id: str, list_file: str) -> str:
+        match = self.ID.fullmatch(shape_id)
+        if match is None:
+            raise DatasetError(f"{list_file}: shape id {shape_id!r} is not '<category>_<number>'")
+        return match[1]
+
+    def load(self, entry: ShapeEntry) -> PointShape:
+        points, normals = parse_resampled(self.archive.read(entry.member), entry.member)
+        return PointShape(entry.name, entry.category, entry.split, points, normals)
+
+
+# --- layout detection -----------------------------------------------------------------------
+
+READERS: dict[str, type[Reader]] = {
+    "pointnet2_resampled": ResampledReader,
+    "pointnet_h5": PointNetH5Reader,
+    "princeton_off": PrincetonOffReader,
+}
+
+
+def layout_of(archive: Archive) -> str:
+    """The layout of an opened archive (see :func:`detect_layout`)."""
+    names = [PurePosixPath(f).name for f in archive.files]
+    if ResampledReader.NAMES_FILE in names:
+        return "pointnet2_resampled"
+    if any(PointNetH5Reader.PATTERN.search(f) for f in archive.files):
+        return "pointnet_h5"
+    if any(PrincetonOffReader.PATTERN.search(f) for f in archive.files):
+        return "princeton_off"
+    raise DatasetError(
+        f"{archive.path} matches no known ModelNet40 layout; expected one of: Princeton meshes "
+        "(ModelNet40/<category>/{train,test}/*.off), PointNet h5 (modelnet40_ply_hdf5_2048: "
+        "ply_data_*.h5 + shape_names.txt) or PointNet++ resampled (modelnet40_normal_resampled: "
+        "modelnet40_shape_names.txt, modelnet40_{train,test}.txt, <category>/<id>.txt), as a folder or .zip"
+    )
+
+
+def detect_layout(source: Path) -> str:
+    """``"princeton_off"``, ``"pointnet_h5"`` or ``"pointnet2_resampled"`` for a folder or .zip."""
+    return layout_of(Archive(source))
+
+
+def open_reader(source: Path) -> Reader:
+    """The reader for ``source`` (folder or .zip), its layout auto-detected."""
+    archive = Archive(source)
+    return READERS[layout_of(archive)](archive)

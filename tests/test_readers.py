@@ -1,0 +1,126 @@
+import numpy as np
+import pytest
+
+from src.data.mesh import MeshShape
+from src.data.readers import (
+    PointNetH5Reader, PointShape, PrincetonOffReader, ResampledReader, detect_layout, open_reader, parse_off,
+    parse_resampled,
+)
+from src.errors import DatasetError
+
+
+def test_parse_off_glued_header_comments_and_polygons():
+    vertices, faces = parse_off(b"OFF5 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n3 0 1 4\n4 0 1 2 3\n", "q.off")
+    assert vertices.shape == (5, 3) and vertices.dtype == np.float64 and faces.dtype == np.int64
+    assert faces.tolist() == [[0, 1, 4], [0, 1, 2], [0, 2, 3]]  # the quad is fan-triangulated
+    text = b"# header comment\nOFF\n\n# counts next\n3 1 0\n0 0 0 # a vertex\n1 0 0\n0 1 0\n\n3 0 1 2 255 0 0\n"
+    vertices, faces = parse_off(text, "ok.off")  # comments, blank lines and colour columns are skipped
+    assert faces.tolist() == [[0, 1, 2]] and vertices[1].tolist() == [1, 0, 0]
+
+
+@pytest.mark.parametrize(
+    ("data", "cause"),
+    [
+        (b"PLY\n3 1 0\n", "not an OFF file"),
+        (b"OFF\n3 1 0\n0 0 0\n1 0 0\n", "truncated OFF file"),
+        (b"OFF\n3 1 0\n0 0 x\n1 0 0\n0 1 0\n3 0 1 2\n", "malformed OFF body"),
+        (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 9\n", "face index out of range"),
+        (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n5 0 1 2\n", "malformed face line"),
+    ],
+)
+def test_parse_off_errors_name_the_file(data, cause):
+    with pytest.raises(DatasetError, match=f"m.off: {cause}"):
+        parse_off(data, "m.off")
+
+
+@pytest.mark.parametrize("zipped", [False, True])
+def test_princeton_reader(princeton_dir, make_zip, zipped):
+    source = make_zip(princeton_dir) if zipped else princeton_dir
+    assert detect_layout(source) == "princeton_off"
+    reader = open_reader(source)
+    assert isinstance(reader, PrincetonOffReader) and reader.categories == ["airplane", "chair"]
+    assert [e.name for e in reader.entries["train"]] == ["airplane_0001", "airplane_0002", "chair_0001"]
+    assert [e.name for e in reader.entries["test"]] == ["airplane_0003", "chair_0002"]
+    shapes = list(reader.iter_shapes("train", limit=2))
+    assert all(isinstance(s, MeshShape) for s in shapes) and [s.faces.shape for s in shapes] == [(4, 3), (12, 3)]
+    assert shapes[1].category == "airplane" and shapes[1].split == "train"
+
+
+def test_princeton_reader_reports_an_empty_split(princeton_dir):
+    for f in princeton_dir.glob("*/test/*.off"):
+        f.unlink()
+    reader = open_reader(princeton_dir)
+    assert list(reader.entries) == ["train"] and "has no test shapes" in reader.missing["test"].message
+
+
+@pytest.mark.parametrize("zipped", [False, True])
+def test_pointnet_h5_reader(h5_dir, make_zip, zipped):
+    source = make_zip(h5_dir) if zipped else h5_dir
+    assert detect_layout(source) == "pointnet_h5"
+    reader = open_reader(source)
+    assert isinstance(reader, PointNetH5Reader) and reader.categories == ["airplane", "chair"]
+    assert [(e.name, e.category) for e in reader.entries["train"]] == [
+        ("airplane_0001", "airplane"), ("chair_0001", "chair"), ("airplane_0002", "airplane")
+    ]
+    assert [e.name for e in reader.entries["test"]] == ["chair_test0_0000", "airplane_test0_0001"]  # no json
+    shape = reader.load(reader.entries["test"][1])
+    assert isinstance(shape, PointShape) and shape.points.shape == shape.normals.shape == (32, 3)
+
+
+def test_pointnet_h5_reader_needs_shape_names(h5_dir):
+    (h5_dir / "shape_names.txt").unlink()
+    with pytest.raises(DatasetError, match="shape_names.txt not found"):
+        open_reader(h5_dir)
+
+
+@pytest.mark.parametrize("zipped", [False, True])
+def test_resampled_reader_restricts_to_present_categories(resampled_dir, make_zip, zipped):
+    source = make_zip(resampled_dir) if zipped else resampled_dir
+    assert detect_layout(source) == "pointnet2_resampled"
+    reader = open_reader(source)
+    assert isinstance(reader, ResampledReader) and reader.categories == ["airplane", "chair"]  # no bathtub folder
+    assert [e.name for e in reader.entries["train"]] == ["airplane_0001", "airplane_0002", "chair_0001"]
+    assert not reader.missing
+    shape = reader.load(reader.entries["test"][1])
+    assert (shape.name, shape.category, shape.split) == ("chair_0002", "chair", "test")
+    assert shape.points.shape == shape.normals.shape == (20, 3) and shape.points.dtype == np.float32
+
+
+def test_resampled_split_with_absent_files_is_reported(resampled_dir):
+    (resampled_dir / "chair" / "chair_0002.txt").unlink()
+    (resampled_dir / "airplane" / "airplane_0003.txt").unlink()
+    reader = open_reader(resampled_dir)
+    assert list(reader.entries) == ["train"]
+    missing = reader.missing["test"]
+    assert (missing.count, missing.examples) == (2, ["airplane_0003", "chair_0002"])
+    assert "split 'test' is not built: 2 of 2 shapes listed in" in missing.message
+    assert "(first: airplane_0003, chair_0002)" in missing.message
+    with pytest.raises(DatasetError, match="split 'test' is not built"):
+        next(reader.iter_shapes("test"))
+
+
+@pytest.mark.parametrize(
+    ("line", "number"), [("1,2,3,4,5\n", 3), ("1,2,3,x,5,6\n", 3), ("nan,2,3,4,5,6\n", 3), ("1,2,3,4,5,6,7\n", 3)]
+)
+def test_resampled_malformed_line_names_file_and_line(line, number):
+    data = ("0,0,0,0,0,1\n\n" + line + "0,0,0,0,0,1\n").encode()
+    with pytest.raises(DatasetError, match=f"airplane_0001.txt: line {number} is malformed"):
+        parse_resampled(data, "airplane/airplane_0001.txt")
+
+
+def test_malformed_file_in_archive_is_reported_on_load(resampled_dir):
+    (resampled_dir / "chair" / "chair_0001.txt").write_text("1,2,3,4,5,6\n1,2\n")
+    reader = open_reader(resampled_dir)
+    with pytest.raises(DatasetError, match="chair/chair_0001.txt: line 2 is malformed"):
+        reader.load(reader.entries["train"][2])
+
+
+def test_detect_layout_errors(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match=r"matches no known ModelNet40 layout; expected one of: Princeton"):
+        detect_layout(tmp_path / "empty")
+    with pytest.raises(DatasetError, match="does not exist"):
+        detect_layout(tmp_path / "nowhere")
+    (tmp_path / "f.zip").write_text("not a zip")
+    with pytest.raises(DatasetError, match="neither a folder nor a .zip"):
+        detect_layout(tmp_path / "f.zip")
