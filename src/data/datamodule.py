@@ -1,0 +1,124 @@
+"""LightningDataModule: cache → category/split selection → pair transforms → loaders."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+from torch.utils.data import DataLoader
+
+from src.data.cache import Cache, default_cache_root
+from src.data.categories import AXISYMMETRIC_CATEGORIES
+from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, PairDataset
+from src.data.prepare import ensure_cache
+from src.data.transforms import build_pair_transforms
+from src.errors import ConfigError
+
+STAGES = ("train", "val", "test")
+
+
+def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmetric: bool) -> list[str]:
+    """``"half1"``/``"half2"`` (the manifest's halves), ``"all"``, or an explicit list of names."""
+    if isinstance(spec, str):
+        if spec == "all":
+            names = list(cache.categories)
+        elif spec in ("half1", "half2"):
+            names = list(cache.halves[spec[-1]])
+        else:
+            raise ConfigError(f"categories must be 'half1', 'half2', 'all' or a list of names, got {spec!r}")
+    else:
+        names = list(spec)
+        unknown = sorted(set(names) - set(cache.categories))
+        if unknown:
+            raise ConfigError(f"unknown categories {unknown} for dataset {cache.dataset!r}; it has {cache.categories}")
+    return [c for c in names if not (remove_axisymmetric and c in AXISYMMETRIC_CATEGORIES)]
+
+
+def select_shapes(cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bool) -> tuple[str, np.ndarray]:
+    """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['slice']``."""
+    split = cache.split(spec["split"])
+    categories = resolve_categories(spec.get("categories", "all"), cache, remove_axisymmetric)
+    wanted = [cache.categories.index(c) for c in categories]
+    indices = np.flatnonzero(np.isin(np.asarray(split.labels), wanted))
+    bounds = spec.get("slice")
+    if bounds is not None:
+        indices = indices[slice(*bounds)]
+    return spec["split"], indices
+
+
+class RegistrationDataModule(L.LightningDataModule):
+    """Train/val/test pair loaders for one experiment.
+
+    ``splits`` maps each stage to ``{split, categories, slice}``; ``pair`` holds the pair-transform
+    parameters (:func:`~src.data.transforms.build_pair_transforms`).
+    """
+
+    def __init__(
+        self,
+        dataset: str = "synthetic",
+        cache_root: str | None = None,
+        splits: Mapping[str, Mapping[str, Any]] | None = None,
+        remove_axisymmetric: bool = True,
+        pair: Mapping[str, Any] | None = None,
+        batch_size: int = 64,
+        eval_batch_size: int = 64,
+        num_workers: int = 4,
+        pin_memory: bool = True,
+        persistent_workers: bool = True,
+        seed: int = 1234,
+        build: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        self.dataset = dataset
+        self.cache_root = Path(cache_root).expanduser() if cache_root else default_cache_root()
+        self.splits = {k: dict(v) for k, v in (splits or {}).items()}
+        unknown = set(self.splits) - set(STAGES)
+        if unknown:
+            raise ConfigError(f"data.splits has unknown stages {sorted(unknown)}; expected {STAGES}")
+        self.remove_axisymmetric = remove_axisymmetric
+        self.pair = dict(pair or {})
+        self.batch_size, self.eval_batch_size = batch_size, eval_batch_size
+        self.num_workers, self.pin_memory = num_workers, pin_memory
+        self.persistent_workers = persistent_workers and num_workers > 0
+        self.seed, self.build = seed, dict(build or {})
+        self.datasets: dict[str, PairDataset] = {}
+        self.cache: Cache | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.cache is None:
+            self.cache = ensure_cache(self.dataset, self.cache_root, **self.build)
+        wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), None: STAGES}.get(stage, STAGES)
+        transforms = build_pair_transforms(self.cache.pair_sampling, **self.pair)
+        for name in wanted:
+            if name in self.datasets or name not in self.splits:
+                continue
+            split, indices = select_shapes(self.cache, self.splits[name], self.remove_axisymmetric)
+            data = self.cache.split(split)
+            stream = TRAIN_STREAM if name == "train" else EVAL_STREAM
+            self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream)
+
+    def _loader(self, name: str, batch_size: int, sampler=None) -> DataLoader:
+        if name not in self.splits:
+            raise ConfigError(f"data.splits has no {name!r} entry for this experiment")
+        return DataLoader(
+            self.datasets[name],
+            batch_size=batch_size,
+            sampler=sampler,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.persistent_workers,
+            drop_last=name == "train",
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        sampler = EpochSampler(len(self.datasets["train"]), self.seed)
+        return self._loader("train", self.batch_size, sampler)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", self.eval_batch_size)

@@ -1,0 +1,98 @@
+"""Pairs of point clouds drawn from a cache split, with per-sample seeded randomness."""
+
+from __future__ import annotations
+
+import math
+from typing import Iterator
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import Dataset, Sampler
+
+from src.data.transforms import Compose
+from src.errors import PointCloudError
+
+TRAIN_STREAM, EVAL_STREAM = 1, 0
+
+
+def check_point_cloud(points: np.ndarray | torch.Tensor, name: str) -> None:
+    """Raise PointCloudError for wrong shapes, empty clouds and non-finite values."""
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise PointCloudError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
+    if points.shape[0] == 0:
+        raise PointCloudError(f"{name} is empty (0 points): check the dataset cache and the crop settings")
+    finite = torch.isfinite(points).all() if isinstance(points, torch.Tensor) else np.isfinite(points).all()
+    if not finite:
+        raise PointCloudError(f"{name} contains NaN or inf values: rebuild the cache with `python -m src.data.prepare`")
+
+
+class PairDataset(Dataset):
+    """One registration pair per index.
+
+    Index ``k`` maps to shape ``shape_indices[k % len(self)]``; its randomness comes from
+    ``default_rng([seed, stream, k])``. Evaluation uses ``k < len(self)`` (a fixed set); training
+    uses the virtual indices ``epoch * len(self) + i`` of :class:`EpochSampler`, so every epoch
+    draws new pairs yet any run, worker count or resume reproduces them.
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        labels: np.ndarray,
+        shape_indices: np.ndarray,
+        transforms: Compose,
+        seed: int,
+        stream: int = EVAL_STREAM,
+    ) -> None:
+        if len(shape_indices) == 0:
+            raise PointCloudError("the selected split has no shapes: check data.splits (categories, slice)")
+        self.points, self.labels = points, labels
+        self.shape_indices = np.asarray(shape_indices)
+        self.transforms, self.seed, self.stream = transforms, seed, stream
+
+    def __len__(self) -> int:
+        return len(self.shape_indices)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        shape = int(self.shape_indices[index % len(self)])
+        rng = np.random.default_rng([self.seed, self.stream, int(index)])
+        sample = self.transforms({"shape_points": self.points[shape]}, rng)
+        for key in ("points_src", "points_ref"):
+            check_point_cloud(sample[key], key)
+        return {
+            "points_src": torch.from_numpy(np.ascontiguousarray(sample["points_src"], dtype=np.float32)),
+            "points_ref": torch.from_numpy(np.ascontiguousarray(sample["points_ref"], dtype=np.float32)),
+            "transform_gt": torch.from_numpy(sample["transform_gt"].astype(np.float32)),
+            "label": torch.tensor(int(self.labels[shape])),
+            "idx": torch.tensor(int(index)),
+        }
+
+
+class EpochSampler(Sampler[int]):
+    """Shuffled virtual indices ``epoch * n + perm[i]`` (see :class:`PairDataset`), split across DDP ranks.
+
+    The permutation depends only on (seed, epoch), so training order and pairs are reproducible and
+    a resumed run continues with the same sequence.
+    """
+
+    def __init__(self, size: int, seed: int, shuffle: bool = True) -> None:
+        self.size, self.seed, self.shuffle, self.epoch = size, seed, shuffle, 0
+        initialized = dist.is_available() and dist.is_initialized()
+        self.world = dist.get_world_size() if initialized else 1
+        self.rank = dist.get_rank() if initialized else 0
+        self.per_rank = math.ceil(size / self.world)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.per_rank
+
+    def __iter__(self) -> Iterator[int]:
+        order = np.arange(self.size)
+        if self.shuffle:
+            order = np.random.default_rng([self.seed, self.epoch]).permutation(self.size)
+        order = np.resize(order, self.per_rank * self.world)  # pad by wrapping so ranks get equal counts
+        for i in order[self.rank :: self.world]:
+            yield int(self.epoch * self.size + i)

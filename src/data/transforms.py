@@ -1,0 +1,259 @@
+"""Composable pair transforms (RPMNet style): plain callables on a dict sample.
+
+Every transform is ``transform(sample, rng) -> sample`` where ``rng`` is the sample's own
+``numpy.random.Generator``; nothing reads global NumPy state, so a fixed test set is the same for
+any worker count or order. A sample starts as ``{"shape_points": (S, P, 3), ...}`` and ends with
+``points_src`` (N, 3), ``points_ref`` (M, 3) and ``transform_gt`` (4, 4), the source→reference
+transform (``ref ≈ R @ src + t``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from src.errors import ConfigError, DatasetError
+
+Sample = dict[str, Any]
+Transform = Callable[[Sample, np.random.Generator], Sample]
+
+SAMPLINGS = ("os", "ts")
+PARTIAL_MANNERS = ("prnet", "rpmnet", "none")
+PAIR_SAMPLINGS = ("independent_samplings", "single_sampling", "disjoint_subsets")
+
+
+def _rigid(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    return (points @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
+
+
+def _inverse(transform: np.ndarray) -> np.ndarray:
+    inv = np.eye(4)
+    inv[:3, :3] = transform[:3, :3].T
+    inv[:3, 3] = -transform[:3, :3].T @ transform[:3, 3]
+    return inv
+
+
+@dataclass
+class Compose:
+    """Apply transforms in order with the same per-sample generator."""
+
+    transforms: Sequence[Transform]
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        for transform in self.transforms:
+            sample = transform(sample, rng)
+        return sample
+
+
+@dataclass
+class PickPair:
+    """Choose the source and reference clouds of a shape.
+
+    ``ts`` (twice-sampled): two different samplings of the CAD model (``independent_samplings``),
+    or two disjoint random subsets of its dense points (``disjoint_subsets``, the closest offline
+    equivalent for the PointNet++ resampled layout). ``os`` (once-sampled): one sampling for both.
+    """
+
+    sampling: str
+    pair_sampling: str
+    num_points: int = 2048
+
+    def __post_init__(self) -> None:
+        if self.sampling not in SAMPLINGS:
+            raise ConfigError(f"data.sampling must be one of {SAMPLINGS}, got {self.sampling!r}")
+        if self.pair_sampling not in PAIR_SAMPLINGS:
+            raise DatasetError(f"unknown pair_sampling {self.pair_sampling!r} in the cache manifest")
+        if self.sampling == "ts" and self.pair_sampling == "single_sampling":
+            raise DatasetError(
+                "this cache holds one sampling per shape (PointNet h5 files), so twice-sampled (TS) pairs "
+                "are impossible: prepare the cache from the ModelNet40 mesh archive, or use data.sampling=os"
+            )
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        shape = sample.pop("shape_points")
+        if self.pair_sampling == "disjoint_subsets":
+            dense = shape[0]
+            needed = self.num_points * (2 if self.sampling == "ts" else 1)
+            if dense.shape[0] < needed:
+                raise DatasetError(f"shape has {dense.shape[0]} points, {needed} needed for {self.sampling} pairs")
+            perm = rng.permutation(dense.shape[0])[:needed]
+            src = dense[np.sort(perm[: self.num_points])]
+            ref = dense[np.sort(perm[-self.num_points :])]
+        else:
+            if self.sampling == "ts":
+                i, j = rng.choice(shape.shape[0], size=2, replace=False)
+            else:
+                i = j = 0
+            src, ref = shape[i], shape[j]
+        sample["points_src"] = np.array(src, dtype=np.float32)
+        sample["points_ref"] = np.array(ref, dtype=np.float32)
+        sample["transform_gt"] = np.eye(4)
+        return sample
+
+
+@dataclass
+class RandomRigidTransform:
+    """Euler angles uniform in [0, rot_mag] degrees (R = Rx·Ry·Rz), translation uniform in ±trans_mag.
+
+    ``apply_to="src"`` moves the source (the reference stays in the canonical frame), ``"ref"``
+    the reference; ``transform_gt`` is updated so it still maps source to reference.
+    """
+
+    rot_mag: float = 45.0
+    trans_mag: float = 0.5
+    apply_to: str = "src"
+
+    def __post_init__(self) -> None:
+        if self.apply_to not in ("src", "ref"):
+            raise ConfigError(f"apply_to must be 'src' or 'ref', got {self.apply_to!r}")
+
+    def sample_transform(self, rng: np.random.Generator) -> np.ndarray:
+        angles = rng.uniform(0.0, self.rot_mag, size=3)  # about x, y, z
+        transform = np.eye(4)
+        transform[:3, :3] = Rotation.from_euler("zyx", angles[::-1], degrees=True).as_matrix()  # Rx·Ry·Rz
+        transform[:3, 3] = rng.uniform(-self.trans_mag, self.trans_mag, size=3)
+        return transform
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        transform = self.sample_transform(rng)
+        if self.apply_to == "src":
+            sample["points_src"] = _rigid(sample["points_src"], transform)
+            sample["transform_gt"] = sample["transform_gt"] @ _inverse(transform)
+        else:
+            sample["points_ref"] = _rigid(sample["points_ref"], transform)
+            sample["transform_gt"] = transform @ sample["transform_gt"]
+        return sample
+
+
+@dataclass
+class PRNetCrop:
+    """PRNet's partial manner: keep the ``num_keep`` nearest neighbours of one far random point.
+
+    The point is U[0,1)³ + 500·s·(1,1,1) with one random sign s, the same point for both clouds
+    (official OMNet code); each cloud keeps its own nearest neighbours of it.
+    """
+
+    num_keep: int = 768
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        far = rng.random(3) + 500.0 * rng.choice([1.0, -1.0])
+        for key in ("points_src", "points_ref"):
+            points = sample[key]
+            if points.shape[0] < self.num_keep:
+                raise DatasetError(f"{key} has {points.shape[0]} points, PRNet crop keeps {self.num_keep}")
+            _, idx = cKDTree(points).query(far, k=self.num_keep)
+            sample[key] = points[np.sort(np.atleast_1d(idx))]
+        return sample
+
+
+@dataclass
+class RPMNetCrop:
+    """RPMNet's partial manner: a random half-space through the centroid, shifted to keep ``p_keep``.
+
+    Source and reference are cropped independently (each with its own random direction).
+    """
+
+    p_keep: float = 0.7
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.p_keep <= 1.0:
+            raise ConfigError(f"p_keep must be in (0, 1], got {self.p_keep}")
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        if self.p_keep >= 1.0:
+            return sample
+        for key in ("points_src", "points_ref"):
+            points = sample[key]
+            direction = rng.normal(size=3)
+            direction /= np.linalg.norm(direction)
+            dist = (points - points.mean(axis=0)) @ direction
+            keep = dist > np.percentile(dist, (1.0 - self.p_keep) * 100)
+            sample[key] = points[keep]
+        return sample
+
+
+@dataclass
+class Resample:
+    """Random subset of each cloud: ``num_points`` for an uncropped cloud, ⌈p_keep·num_points⌉ after
+    an RPMNet crop (1024 → 717), with replacement only if a cloud is too small."""
+
+    num_points: int = 1024
+    p_keep: float = 1.0
+
+    @property
+    def target(self) -> int:
+        return math.ceil(self.p_keep * self.num_points)
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        for key in ("points_src", "points_ref"):
+            points = sample[key]
+            replace = points.shape[0] < self.target
+            idx = rng.choice(points.shape[0], size=self.target, replace=replace)
+            sample[key] = points[idx]
+        return sample
+
+
+@dataclass
+class GaussianNoise:
+    """Add N(0, sigma²) noise clipped to ±clip to every coordinate of both clouds."""
+
+    sigma: float = 0.01
+    clip: float = 0.05
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        if self.sigma <= 0:
+            return sample
+        for key in ("points_src", "points_ref"):
+            noise = np.clip(rng.normal(0.0, self.sigma, size=sample[key].shape), -self.clip, self.clip)
+            sample[key] = (sample[key] + noise).astype(np.float32)
+        return sample
+
+
+@dataclass
+class Shuffle:
+    """Permute the points of each cloud independently."""
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        for key in ("points_src", "points_ref"):
+            sample[key] = sample[key][rng.permutation(sample[key].shape[0])]
+        return sample
+
+
+def build_pair_transforms(
+    pair_sampling: str,
+    sampling: str = "ts",
+    partial: str = "prnet",
+    num_points: int = 2048,
+    rot_mag: float = 45.0,
+    trans_mag: float = 0.5,
+    noise_sigma: float = 0.0,
+    noise_clip: float = 0.05,
+    prnet_num_keep: int = 768,
+    rpmnet_p_keep: float = 0.7,
+    rpmnet_num_points: int = 1024,
+) -> Compose:
+    """The paper's pipelines (supplementary Sec. 2).
+
+    PRNet manner: pick pair → transform applied to Y giving X (the source) → 768-NN crop of one far
+    point → noise → shuffle. RPMNet manner ("opposite to PRNet"): pick pair → independent
+    half-space crops (p_keep) → transform applied to X giving Y (the reference) → resample to
+    ⌈p_keep·1024⌉ = 717 → noise → shuffle.
+    """
+    if partial not in PARTIAL_MANNERS:
+        raise ConfigError(f"data.partial must be one of {PARTIAL_MANNERS}, got {partial!r}")
+    pick = PickPair(sampling, pair_sampling, num_points)
+    noise = GaussianNoise(noise_sigma, noise_clip)
+    if partial == "prnet":
+        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
+        steps: list[Transform] = [pick, move, PRNetCrop(prnet_num_keep), noise, Shuffle()]
+    elif partial == "rpmnet":
+        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="ref")
+        steps = [pick, RPMNetCrop(rpmnet_p_keep), move, Resample(rpmnet_num_points, rpmnet_p_keep), noise, Shuffle()]
+    else:
+        steps = [pick, RandomRigidTransform(rot_mag, trans_mag, apply_to="src"), noise, Shuffle()]
+    return Compose(steps)

@@ -1,0 +1,162 @@
+"""Pair transforms: crop sizes and ratios, ground truth, noise bounds, determinism of fixed sets."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+from torch.utils.data import DataLoader
+
+from src.data.dataset import EpochSampler, PairDataset
+from src.data.transforms import (
+    GaussianNoise,
+    PickPair,
+    PRNetCrop,
+    RandomRigidTransform,
+    RPMNetCrop,
+    build_pair_transforms,
+)
+from src.errors import ConfigError, DatasetError, PointCloudError
+
+
+def _shapes(num_shapes=6, samplings=4, points=2048, seed=0):
+    rng = np.random.default_rng(seed)
+    base = rng.normal(size=(num_shapes, 1, points, 3)) * [1.0, 0.6, 0.3]
+    jitter = rng.normal(scale=0.01, size=(num_shapes, samplings, points, 3))
+    return (base + jitter).astype(np.float32)
+
+
+def _apply(transform, points):
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def _nn_dist(a, b):
+    return cKDTree(b).query(a)[0]
+
+
+@pytest.mark.parametrize("partial", ["prnet", "rpmnet"])
+def test_ground_truth_maps_source_onto_reference(partial):
+    shapes = _shapes()
+    pipeline = build_pair_transforms("independent_samplings", sampling="os", partial=partial)
+    sample = pipeline({"shape_points": shapes[0]}, np.random.default_rng(0))
+    moved = _apply(sample["transform_gt"], sample["points_src"])
+    # OS, no noise: the overlapping source points land exactly on reference points ...
+    assert (_nn_dist(moved, sample["points_ref"]) < 1e-5).mean() > 0.3
+    # ... which they do not without the ground truth.
+    assert (_nn_dist(sample["points_src"], sample["points_ref"]) < 1e-5).mean() < 0.05
+
+
+def test_ground_truth_is_exact_without_crop():
+    pipeline = build_pair_transforms("independent_samplings", sampling="os", partial="none")
+    sample = pipeline({"shape_points": _shapes()[3]}, np.random.default_rng(1))
+    assert _nn_dist(_apply(sample["transform_gt"], sample["points_src"]), sample["points_ref"]).max() < 1e-5
+
+
+def test_prnet_crop_keeps_768_nearest_of_the_same_far_point():
+    shapes = _shapes()
+    sample = PickPair("os", "independent_samplings")({"shape_points": shapes[1]}, np.random.default_rng(1))
+    out = PRNetCrop(768)(dict(sample), np.random.default_rng(2))
+    assert out["points_src"].shape == (768, 3) and out["points_ref"].shape == (768, 3)
+    # identical clouds and the same far point -> identical crops
+    np.testing.assert_array_equal(np.sort(out["points_src"], axis=0), np.sort(out["points_ref"], axis=0))
+
+
+def test_rpmnet_crop_ratio_and_resample_to_717():
+    shapes = _shapes()
+    sample = PickPair("ts", "independent_samplings")({"shape_points": shapes[2]}, np.random.default_rng(3))
+    cropped = RPMNetCrop(0.7)(dict(sample), np.random.default_rng(4))
+    assert cropped["points_src"].shape[0] == pytest.approx(0.7 * 2048, abs=2)
+    pipeline = build_pair_transforms("independent_samplings", sampling="ts", partial="rpmnet")
+    out = pipeline({"shape_points": shapes[2]}, np.random.default_rng(5))
+    assert out["points_src"].shape == (717, 3) and out["points_ref"].shape == (717, 3)
+
+
+def test_rigid_transform_ranges():
+    move = RandomRigidTransform(45.0, 0.5)
+    rng = np.random.default_rng(6)
+    from scipy.spatial.transform import Rotation
+
+    for _ in range(50):
+        t = move.sample_transform(rng)
+        angles = Rotation.from_matrix(t[:3, :3]).as_euler("zyx", degrees=True)[::-1]  # about x, y, z
+        assert np.all(angles >= -1e-9) and np.all(angles <= 45 + 1e-9)
+        assert np.all(np.abs(t[:3, 3]) <= 0.5)
+
+
+def test_noise_is_clipped():
+    points = np.zeros((5000, 3), dtype=np.float32)
+    out = GaussianNoise(sigma=0.05, clip=0.05)({"points_src": points, "points_ref": points.copy()}, np.random.default_rng(7))
+    assert np.abs(out["points_src"]).max() <= 0.05 + 1e-7
+    assert np.abs(out["points_src"]).max() > 0.049  # sigma = clip: many values get clipped
+    assert not np.allclose(out["points_src"], out["points_ref"])
+
+
+def test_ts_uses_two_samplings_os_one():
+    shapes = _shapes()
+    ts = PickPair("ts", "independent_samplings")({"shape_points": shapes[0]}, np.random.default_rng(8))
+    os_ = PickPair("os", "independent_samplings")({"shape_points": shapes[0]}, np.random.default_rng(8))
+    assert not np.allclose(ts["points_src"], ts["points_ref"])
+    np.testing.assert_array_equal(os_["points_src"], os_["points_ref"])
+
+
+def test_disjoint_subsets_are_disjoint_and_deterministic():
+    dense = np.random.default_rng(9).normal(size=(1, 10000, 3)).astype(np.float32)
+    pick = PickPair("ts", "disjoint_subsets", num_points=2048)
+    a = pick({"shape_points": dense}, np.random.default_rng(10))
+    b = pick({"shape_points": dense}, np.random.default_rng(10))
+    np.testing.assert_array_equal(a["points_src"], b["points_src"])
+    src_rows = {tuple(p) for p in a["points_src"]}
+    assert not src_rows & {tuple(p) for p in a["points_ref"]}
+    assert len(src_rows) == 2048
+
+
+def test_bad_configuration_errors():
+    with pytest.raises(ConfigError, match="data.sampling"):
+        PickPair("twice", "independent_samplings")
+    with pytest.raises(DatasetError, match="one sampling per shape"):
+        PickPair("ts", "single_sampling")
+    with pytest.raises(ConfigError, match="data.partial"):
+        build_pair_transforms("independent_samplings", partial="octant")
+
+
+def _dataset(stream=0):
+    shapes = _shapes(num_shapes=8)
+    pipeline = build_pair_transforms("independent_samplings", sampling="ts", partial="prnet", noise_sigma=0.01)
+    return PairDataset(shapes, np.arange(8), np.arange(8), pipeline, seed=3, stream=stream)
+
+
+def _collect(loader):
+    return torch.cat([b["points_src"] for b in loader]), torch.cat([b["transform_gt"] for b in loader])
+
+
+def test_fixed_set_is_identical_across_worker_counts_and_order():
+    dataset = _dataset()
+    ref_points, ref_gt = _collect(DataLoader(dataset, batch_size=3, num_workers=0))
+    points, gt = _collect(DataLoader(dataset, batch_size=2, num_workers=2))
+    torch.testing.assert_close(points, ref_points)
+    torch.testing.assert_close(gt, ref_gt)
+    reversed_items = [dataset[i]["points_src"] for i in reversed(range(len(dataset)))]
+    torch.testing.assert_close(torch.stack(reversed_items[::-1]), ref_points.view(8, 768, 3))
+
+
+def test_epoch_sampler_draws_new_pairs_each_epoch_reproducibly():
+    dataset = _dataset(stream=1)
+    sampler = EpochSampler(len(dataset), seed=0)
+    first = list(sampler)
+    sampler.set_epoch(1)
+    second = list(sampler)
+    assert sorted(i % 8 for i in second) == list(range(8)) and min(second) >= 8
+    assert not torch.equal(dataset[first[0]]["points_src"], dataset[first[0] + 8]["points_src"])
+    sampler.set_epoch(1)
+    assert list(sampler) == second
+
+
+def test_nan_and_empty_clouds_are_rejected():
+    shapes = _shapes(num_shapes=2)
+    shapes[1, :, 5] = np.nan
+    pipeline = build_pair_transforms("independent_samplings", sampling="os", partial="none")
+    dataset = PairDataset(shapes, np.zeros(2), np.arange(2), pipeline, seed=0)
+    dataset[0]
+    with pytest.raises(PointCloudError, match="NaN"):
+        dataset[1]
+    with pytest.raises(PointCloudError, match="no shapes"):
+        PairDataset(shapes, np.zeros(2), np.array([], dtype=int), pipeline, seed=0)
