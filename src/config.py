@@ -1,0 +1,21 @@
+"""OmegaConf resolvers used by ``conf/`` (registered on import of the entry points)."""
+
+from __future__ import annotations
+
+from omegaconf import OmegaConf
+
+from src.errors import ConfigError
+
+EULER_SEQ_BY_PARTIAL = {"prnet": "zyx", "rpmnet": "xyz", "none": "zyx"}
+
+
+def euler_seq_for(partial: str) -> str:
+    """Metric Euler convention of a partial manner: PRNet's code uses zyx, RPMNet's xyz."""
+    if partial not in EULER_SEQ_BY_PARTIAL:
+        raise ConfigError(f"partial must be one of {sorted(EULER_SEQ_BY_PARTIAL)}, got {partial!r}")
+    return EULER_SEQ_BY_PARTIAL[partial]
+
+
+def register_resolvers() -> None:
+    if not OmegaConf.has_resolver("euler_seq"):
+        OmegaConf.register_new_resolver("euler_seq", euler_seq_for)

@@ -1,0 +1,63 @@
+"""Evaluate a checkpoint on an experiment's fixed test set and print the metrics table.
+
+    python -m src.eval +exp=unseen_categories ckpt_path=outputs/.../checkpoints/best-*.ckpt
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig
+
+from src.config import register_resolvers
+from src.errors import CheckpointError
+from src.models.module import RegistrationModule
+from src.runtime import build_trainer, exit_on_user_error, format_metrics, save_resolved_config, write_metrics
+
+register_resolvers()
+
+
+def load_checkpoint(path: str | None, expected_target: str) -> RegistrationModule:
+    """Load a RegistrationModule checkpoint, checking it holds the configured network."""
+    if not path:
+        raise CheckpointError("no checkpoint given: pass ckpt_path=PATH (a .ckpt written by src.train)")
+    if not Path(path).is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        hparams = torch.load(path, map_location="cpu", weights_only=False).get("hyper_parameters", {})
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointError(f"{path} is not a readable PyTorch checkpoint ({type(err).__name__})") from err
+    found = (hparams.get("network") or {}).get("_target_")
+    if found is None:
+        raise CheckpointError(f"{path} was not written by src.train (no network config inside)")
+    if found != expected_target:
+        raise CheckpointError(
+            f"{path} holds a {found} network but the config asks for {expected_target}: pass model=<its model>"
+        )
+    return RegistrationModule.load_from_checkpoint(path, map_location="cpu")
+
+
+def evaluate(cfg: DictConfig) -> dict[str, float]:
+    output_dir = Path(cfg.output_dir)
+    module = load_checkpoint(cfg.ckpt_path, cfg.model.network._target_)
+    save_resolved_config(cfg, output_dir)
+    datamodule = hydra.utils.instantiate(cfg.data)
+    trainer = build_trainer(cfg, with_checkpoints=False)
+    trainer.test(module, datamodule=datamodule)
+    metrics = module.test_results
+    write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": str(cfg.ckpt_path), "sampling": cfg.sampling,
+                                        "partial": cfg.partial, "dataset": cfg.data.dataset})
+    print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@exit_on_user_error
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""OMNet: output structure, rigid poses, masks schedule, labels, ablation flags, one step lowers the loss."""
+
+import pytest
+import torch
+
+from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
+from src.models.omnet import OMNet
+
+torch.manual_seed(0)
+
+
+def _batch(b=4, n=96):
+    ref = torch.randn(b, n, 3) * torch.tensor([0.6, 0.4, 0.2])
+    angles = torch.rand(b, 3) * 0.6
+    gt = se3_from_rt(euler_to_matrix(angles, "zyx"), torch.rand(b, 3) - 0.5)
+    src = se3_apply(torch.linalg.inv(gt), ref)  # src maps onto ref under gt
+    return src, ref, gt
+
+
+def _small(**kwargs):
+    return OMNet(width=0.0625, **kwargs)
+
+
+def test_outputs_per_iteration_and_rigid_transforms():
+    model = _small().eval()
+    src, ref, gt = _batch()
+    out = model(src, ref, gt)
+    assert len(out["transforms"]) == 4 and len(out["mask_logits"]) == 4 and len(out["mask_labels"]) == 4
+    final = out["transforms"][-1]
+    assert final.shape == (4, 4, 4)
+    rot = final[:, :3, :3]
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand(4, 3, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(4), atol=1e-5, rtol=0)
+    assert out["mask_logits"][0][0].shape == (4, 96, 2)
+
+
+def test_masks_all_ones_for_two_iterations_then_hard():
+    model = _small().eval()
+    src, ref, gt = _batch()
+    masks = model(src, ref, gt)["masks"]
+    for i in (0, 1):
+        assert torch.all(masks[i][0] == 1) and torch.all(masks[i][1] == 1)
+    for i in (2, 3):
+        assert set(masks[i][0].unique().tolist()) <= {0.0, 1.0}
+
+
+def test_topk_masks_keep_k_points():
+    model = _small(mask_mode="topk", topk=10).eval()
+    src, ref, gt = _batch()
+    masks = model(src, ref, gt)["masks"]
+    assert torch.all(masks[2][0].sum(dim=1) == 10)
+
+
+def test_overlap_labels_by_hand():
+    model = _small()
+    src = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [5.0, 0, 0]]])
+    ref = torch.tensor([[[0.05, 0, 0], [1.2, 0, 0]]])
+    ones_s, ones_r = torch.ones(1, 3), torch.ones(1, 2)
+    lab_s, lab_r = model.overlap_labels(src, ref, torch.eye(4)[None], ones_s, ones_r)
+    assert lab_s.tolist() == [[1, 0, 0]] and lab_r.tolist() == [[1, 0]]
+    # a masked-out source point never matches
+    lab_s, lab_r = model.overlap_labels(src, ref, torch.eye(4)[None], torch.tensor([[0.0, 1, 1]]), ones_r)
+    assert lab_s.tolist() == [[0, 0, 0]] and lab_r.tolist() == [[0, 0]]
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        dict(mask_module=False, fusion=False, connection=False),  # B
+        dict(mask_loss=False, fusion=False, connection=False),  # B+M
+        dict(fusion=False, connection=False),  # B+M+ML
+        dict(connection=False),  # B+M+ML+F
+        dict(share_weights=True),
+        dict(trans_loss="l2", num_iters=2),
+    ],
+)
+def test_ablation_variants_run_and_train(flags):
+    model = _small(**flags)
+    src, ref, gt = _batch()
+    losses = model.loss(model(src, ref, gt), gt)
+    losses["loss"].backward()
+    assert torch.isfinite(losses["loss"])
+    if not model.mask_loss_enabled:
+        assert losses["loss/mask"].item() == 0.0
+    else:
+        assert losses["loss/mask"].item() > 0.0
+
+
+def test_shared_weights_have_a_quarter_of_the_parameters():
+    per_iter = sum(p.numel() for p in _small().parameters())
+    shared = sum(p.numel() for p in _small(share_weights=True).parameters())
+    assert per_iter == 4 * shared
+
+
+def test_training_steps_lower_the_loss_on_a_tiny_batch():
+    torch.manual_seed(1)
+    model = _small()
+    src, ref, gt = _batch(b=8, n=64)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(15):
+        optimizer.zero_grad()
+        loss = model.loss(model(src, ref, gt), gt)["loss"]
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.7 * losses[0]
+
+
+def test_invalid_options_are_rejected():
+    with pytest.raises(ValueError, match="mask_mode"):
+        OMNet(mask_mode="soft")
+    with pytest.raises(ValueError, match="trans_loss"):
+        OMNet(trans_loss="l3")
