@@ -8,6 +8,7 @@ from typing import Any
 
 import lightning as L
 import numpy as np
+import torch
 from torch.utils.data import DataLoader
 
 from src.data.cache import Cache, default_cache_root
@@ -38,14 +39,15 @@ def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmet
 
 
 def select_shapes(cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bool) -> tuple[str, np.ndarray]:
-    """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['slice']``."""
+    """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['slice']``
+    (``[start, stop]`` as a Python slice over them in split-list order, e.g. ``[-100, null]``)."""
     split = cache.split(spec["split"])
     categories = resolve_categories(spec.get("categories", "all"), cache, remove_axisymmetric)
     wanted = [cache.categories.index(c) for c in categories]
     indices = np.flatnonzero(np.isin(np.asarray(split.labels), wanted))
     bounds = spec.get("slice")
     if bounds is not None:
-        indices = indices[slice(*bounds)]
+        indices = indices[slice(*(None if b is None else int(b) for b in bounds))]
     return spec["split"], indices
 
 
@@ -81,7 +83,8 @@ class RegistrationDataModule(L.LightningDataModule):
         self.remove_axisymmetric = remove_axisymmetric
         self.pair = dict(pair or {})
         self.batch_size, self.eval_batch_size = batch_size, eval_batch_size
-        self.num_workers, self.pin_memory = num_workers, pin_memory
+        self.num_workers = num_workers
+        self.pin_memory = pin_memory and torch.cuda.is_available()
         self.persistent_workers = persistent_workers and num_workers > 0
         self.seed, self.build = seed, dict(build or {})
         self.datasets: dict[str, PairDataset] = {}

@@ -1,0 +1,60 @@
+"""exp=real_airplane on the first shapes of the shared real ModelNet40 airplane zip."""
+
+import os
+from pathlib import Path
+
+import hydra
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from torch.utils.data import DataLoader
+
+from src.config import register_resolvers
+from src.data.prepare import prepare
+from src.errors import DatasetError
+
+ZIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_normal_resampled_airplane.zip"
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+pytestmark = pytest.mark.skipif(not ZIP.is_file(), reason=f"{ZIP} not available")
+register_resolvers()
+
+
+@pytest.fixture(scope="module")
+def cache_root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("cache")
+    prepare("modelnet40_resampled", source=ZIP, cache_root=root, limit=12, workers=1)
+    return root
+
+
+def _datamodule(cache_root: Path, *overrides: str):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("config", overrides=["+exp=real_airplane", "val_size=4", f"data.cache_root={cache_root}",
+                                           "data.num_workers=0", "output_dir=/tmp/unused", *overrides])
+    return hydra.utils.instantiate(cfg.data)
+
+
+def test_validation_carveout_is_the_last_train_ids(cache_root):
+    dm = _datamodule(cache_root)
+    dm.setup("fit")
+    names = dm.cache.split("train").shape_names
+    val_names = [names[i] for i in dm.datasets["val"].shape_indices]
+    train_names = [names[i] for i in dm.datasets["train"].shape_indices]
+    assert val_names == ["airplane_0009", "airplane_0010", "airplane_0011", "airplane_0012"]
+    assert len(train_names) == 8 and not set(train_names) & set(val_names)
+
+
+@pytest.mark.parametrize("partial", ["prnet", "rpmnet"])
+def test_real_pairs_are_fixed_across_worker_counts(cache_root, partial):
+    dm = _datamodule(cache_root, f"partial={partial}", "data.pair.noise_sigma=0.01")
+    dm.setup("validate")
+    dataset = dm.datasets["val"]
+    one = [b["points_src"] for b in DataLoader(dataset, batch_size=2, num_workers=0)]
+    two = [b["points_src"] for b in DataLoader(dataset, batch_size=2, num_workers=2)]
+    torch.testing.assert_close(torch.cat(one), torch.cat(two))
+    assert one[0].shape[1] == (768 if partial == "prnet" else 717)
+
+
+def test_asking_for_the_withheld_test_split_stops_with_the_prepare_message(cache_root):
+    dm = _datamodule(cache_root, "data.splits.test.split=test")
+    with pytest.raises(DatasetError, match=r"100 of 100 shapes .* missing .*first: airplane_0627"):
+        dm.setup("test")
