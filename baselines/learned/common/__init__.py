@@ -1,0 +1,1 @@
+"""Building blocks shared by the learned baselines (one copy each, never per network)."""
