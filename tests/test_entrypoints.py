@@ -24,7 +24,7 @@ TINY = [
     "data.eval_batch_size=2",
     "data.num_workers=0",
     "data.pin_memory=false",
-    "model.network.width=0.0625",
+    "model_scale=0.0625",
     "trainer.accelerator=cpu",
     "trainer.enable_progress_bar=false",
 ]

@@ -122,5 +122,29 @@ def test_detect_layout_errors(tmp_path):
     with pytest.raises(DatasetError, match="does not exist"):
         detect_layout(tmp_path / "nowhere")
     (tmp_path / "f.zip").write_text("not a zip")
-    with pytest.raises(DatasetError, match="neither a folder nor a .zip"):
+    with pytest.raises(DatasetError, match="neither a folder, a .zip archive nor an .off/.ply scan"):
         detect_layout(tmp_path / "f.zip")
+
+
+def test_scan_meshes_from_a_single_file_and_a_folder(tmp_path, meshes):
+    import open3d as o3d
+
+    from conftest import off_text
+
+    vertices, faces = meshes["cube"]
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    (scans / "bunny.off").write_text(off_text(vertices, faces))
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces))
+    o3d.io.write_triangle_mesh(str(scans / "dragon.ply"), mesh)
+    reader = open_reader(scans)
+    assert reader.layout == "scan_meshes" and reader.categories == ["bunny", "dragon"]
+    assert list(reader.entries) == ["test"] and not reader.missing
+    dragon = reader.load(reader.entries["test"][1])
+    np.testing.assert_allclose(dragon.vertices, vertices, atol=1e-6)
+    single = open_reader(scans / "bunny.off")
+    assert [e.name for e in single.entries["test"]] == ["bunny"]
+    (tmp_path / "cloud.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n")
+    points_only = open_reader(tmp_path / "cloud.ply")
+    with pytest.raises(DatasetError, match="no triangle mesh"):
+        points_only.load(points_only.entries["test"][0])

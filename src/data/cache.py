@@ -30,8 +30,8 @@ import numpy as np
 from src.errors import DatasetError
 
 FORMAT_VERSION = 1
-DATASETS: tuple[str, ...] = ("modelnet40", "modelnet40_resampled", "synthetic")
-SOURCE_LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "procedural")
+DATASETS: tuple[str, ...] = ("modelnet40", "modelnet40_resampled", "stanford", "synthetic")
+SOURCE_LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "scan_meshes", "procedural")
 PAIR_SAMPLINGS: tuple[str, ...] = ("independent_samplings", "single_sampling", "disjoint_subsets")
 """``independent_samplings``: S >= 2 mesh samplings, TS picks 2 of S, OS uses one.
 ``single_sampling``: S = 1, only OS possible. ``disjoint_subsets``: S = 1 dense points, TS = two

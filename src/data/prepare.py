@@ -53,8 +53,9 @@ overrides, e.g. with the PointNet h5 archive)."""
 DATASET_LAYOUTS: dict[str, tuple[str, ...]] = {
     "modelnet40": ("princeton_off", "pointnet_h5"),
     "modelnet40_resampled": ("pointnet2_resampled",),
+    "stanford": ("scan_meshes",),
 }
-MESH_DEFAULTS = {"modelnet40": (40, 2048), "synthetic": (10, 2048)}
+MESH_DEFAULTS = {"modelnet40": (40, 2048), "stanford": (40, 2048), "synthetic": (10, 2048)}
 """Default ``(num_samplings, num_points)`` when sampling meshes."""
 AS_PROVIDED = "as_provided"
 
@@ -184,8 +185,8 @@ def source_fingerprint(source: Path) -> dict:
 def _sampling_params(
     layout: str, num_samplings: int | None, num_points: int | None, seed: int, limit: int | None
 ) -> dict:
-    if layout == "princeton_off":
-        default_s, default_p = MESH_DEFAULTS["modelnet40"]
+    if layout in ("princeton_off", "scan_meshes"):
+        default_s, default_p = MESH_DEFAULTS["stanford" if layout == "scan_meshes" else "modelnet40"]
         return {
             "num_samplings": num_samplings or default_s, "num_points": num_points or default_p, "seed": seed,
             "method": METHOD, "normalization": NORMALIZATION, "limit": limit,
@@ -235,7 +236,7 @@ def _build_modelnet(
         log.warning(missing.message)
     if not reader.entries:
         raise DatasetError(f"{source}: no split can be built")
-    if layout == "princeton_off":
+    if layout in ("princeton_off", "scan_meshes"):
         compute, pair_sampling = _sample_mesh, _pair_sampling(sampling["num_samplings"])
     else:
         first = reader.load(next(iter(reader.entries.values()))[0])
@@ -357,6 +358,8 @@ def prepare(
     if download and source:
         raise DatasetError("use either --source PATH or --download, not both")
     if download:
+        if not url and DATASET_LAYOUTS[dataset][0] not in URLS:
+            raise DatasetError(f"{dataset} has no official archive to download: pass --source PATH (or --download --url URL)")
         url = url or URLS[DATASET_LAYOUTS[dataset][0]]
         name = PurePosixPath(urlparse(url).path).name or f"{dataset}.zip"
         source = download_file(url, cache_root / "downloads" / name)

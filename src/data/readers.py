@@ -28,7 +28,7 @@ from src.data.categories import MODELNET40_CATEGORIES
 from src.data.mesh import MeshShape
 from src.errors import DatasetError
 
-LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled")
+LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "scan_meshes")
 SPLITS: tuple[str, ...] = ("train", "test")
 MISSING_EXAMPLES = 10
 """How many missing shape ids a :class:`MissingSplit` keeps (the message shows the first 5)."""
@@ -76,10 +76,14 @@ class Archive:
         self.path = Path(path)
         if not self.path.exists():
             raise DatasetError(f"source {self.path} does not exist")
-        self.is_zip = self.path.is_file()
+        single = self.path.is_file() and self.path.suffix.lower() in (".off", ".ply")
+        self.is_zip = self.path.is_file() and not single
         if self.is_zip and not zipfile.is_zipfile(self.path):
-            raise DatasetError(f"source {self.path} is neither a folder nor a .zip archive")
-        names = self._zip().namelist() if self.is_zip else self._walk()
+            raise DatasetError(f"source {self.path} is neither a folder, a .zip archive nor an .off/.ply scan")
+        if single:  # one scan file: an archive of that file alone, read from its folder
+            names, self.path = [self.path.name], self.path.parent
+        else:
+            names = self._zip().namelist() if self.is_zip else self._walk()
         self.files: list[str] = sorted(n for n in names if not n.endswith("/") and not _is_junk(n))
         self.file_set = frozenset(self.files)
 
@@ -390,10 +394,58 @@ class ResampledReader(Reader):
 
 # --- layout detection -----------------------------------------------------------------------
 
+# --- real scans (Stanford 3D Scanning Repository style) --------------------------------------
+
+
+class ScanMeshReader(Reader):
+    """Any folder (or .zip) of ``.off`` / ``.ply`` scan meshes, or one such file; each scan is its own
+    category and everything is the ``test`` split (scans are for evaluation without fine-tuning)."""
+
+    layout = "scan_meshes"
+    SUFFIXES = (".off", ".ply")
+
+    def __init__(self, archive: Archive):
+        super().__init__(archive)
+        members = [f for f in archive.files if f.lower().endswith(self.SUFFIXES)]
+        if not members:
+            raise DatasetError(f"{archive.path} holds no .off or .ply scan")
+        names = [PurePosixPath(f).stem for f in members]
+        if len(set(names)) != len(names):
+            raise DatasetError(f"{archive.path}: two scans share a file name: {sorted(names)}")
+        self.categories = sorted(names)
+        self._set_splits({"test": [ShapeEntry(n, n, "test", f) for n, f in sorted(zip(names, members))]})
+        self.missing.pop("train", None)  # scans have no train split by design
+
+    def load(self, entry: ShapeEntry) -> MeshShape:
+        data = self.archive.read(entry.member)
+        if entry.member.lower().endswith(".off"):
+            vertices, faces = parse_off(data, entry.member)
+        else:
+            vertices, faces = _parse_ply(data, entry.member)
+        return MeshShape(entry.name, entry.category, entry.split, vertices, faces)
+
+
+def _parse_ply(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle mesh from PLY bytes (ASCII or binary), through Open3D."""
+    import tempfile
+
+    import open3d as o3d
+
+    with tempfile.NamedTemporaryFile(suffix=".ply") as handle:
+        handle.write(data)
+        handle.flush()
+        mesh = o3d.io.read_triangle_mesh(handle.name)
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.triangles, dtype=np.int64)
+    if len(vertices) == 0 or len(faces) == 0:
+        raise DatasetError(f"{name}: no triangle mesh found (point-only PLY files are not supported)")
+    return vertices, faces
+
+
 READERS: dict[str, type[Reader]] = {
     "pointnet2_resampled": ResampledReader,
     "pointnet_h5": PointNetH5Reader,
     "princeton_off": PrincetonOffReader,
+    "scan_meshes": ScanMeshReader,
 }
 
 
@@ -406,11 +458,14 @@ def layout_of(archive: Archive) -> str:
         return "pointnet_h5"
     if any(PrincetonOffReader.PATTERN.search(f) for f in archive.files):
         return "princeton_off"
+    if any(f.lower().endswith(ScanMeshReader.SUFFIXES) for f in archive.files):
+        return "scan_meshes"
     raise DatasetError(
         f"{archive.path} matches no known ModelNet40 layout; expected one of: Princeton meshes "
         "(ModelNet40/<category>/{train,test}/*.off), PointNet h5 (modelnet40_ply_hdf5_2048: "
         "ply_data_*.h5 + shape_names.txt) or PointNet++ resampled (modelnet40_normal_resampled: "
-        "modelnet40_shape_names.txt, modelnet40_{train,test}.txt, <category>/<id>.txt), as a folder or .zip"
+        "modelnet40_shape_names.txt, modelnet40_{train,test}.txt, <category>/<id>.txt), as a folder or .zip, "
+        "or a folder of .off/.ply scans"
     )
 
 
