@@ -1,0 +1,34 @@
+"""Registration methods behind one interface, and a parallel runner for evaluating them.
+
+>>> from baselines import get_registrator, run_pairs
+>>> icp = get_registrator("icp", max_iterations=30)
+>>> T = icp.register(src, ref)                     # (4, 4), ref ≈ T[:3, :3] @ src + T[:3, 3]
+>>> results = run_pairs(icp, pairs, workers=2, timeout_s=60)
+"""
+
+from baselines.base import (
+    Registrator,
+    RegistratorConfig,
+    available_registrators,
+    check_batch,
+    check_cloud,
+    get_registrator,
+    register_registrator,
+    resolve_registrator,
+    transform_problem,
+)
+from baselines.runner import PairResult, run_pairs
+
+__all__ = [
+    "PairResult",
+    "Registrator",
+    "RegistratorConfig",
+    "available_registrators",
+    "check_batch",
+    "check_cloud",
+    "get_registrator",
+    "register_registrator",
+    "resolve_registrator",
+    "run_pairs",
+    "transform_problem",
+]

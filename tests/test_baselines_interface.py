@@ -1,0 +1,135 @@
+"""The Registrator interface: registry, config handling, input checks, rigidity checks."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from baselines import (
+    Registrator,
+    available_registrators,
+    check_cloud,
+    get_registrator,
+    register_registrator,
+    transform_problem,
+)
+from baselines.base import _REGISTRY, project_to_rotation
+from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface, make_pair
+from src.errors import ConfigError, PointCloudError
+
+
+def test_registry_lists_the_classical_methods():
+    assert {"icp", "fgr", "symmetric_icp", "goicp"} <= set(available_registrators())
+
+
+def test_unknown_method_names_the_available_ones():
+    with pytest.raises(ConfigError) as info:
+        get_registrator("sparse_icp")
+    msg = str(info.value)
+    assert "sparse_icp" in msg and "icp" in msg and "fgr" in msg and "symmetric_icp" in msg
+    assert "\n" not in msg
+
+
+def test_names_are_normalised_and_aliased():
+    assert get_registrator("ICP").name == "icp"
+    assert get_registrator("Symmetric-ICP").name == "symmetric_icp"
+
+
+def test_unknown_config_key_and_bad_value_raise_config_error():
+    with pytest.raises(ConfigError, match="max_iterations"):
+        get_registrator("icp", max_iteration=3)  # typo: lists the valid keys
+    with pytest.raises(ConfigError, match="max_correspondence_distance"):
+        get_registrator("icp", max_correspondence_distance=-1.0)
+    with pytest.raises(ConfigError, match="normal_orientation"):
+        get_registrator("fgr", normal_orientation="sideways")
+
+
+def test_config_overrides_and_attributes():
+    icp = get_registrator("icp", max_iterations=7)
+    assert icp.config.max_iterations == 7
+    assert icp.needs_training is False and icp.needs_normals is False
+    fgr = get_registrator("fgr")
+    assert fgr.needs_normals is True
+    # registrators travel to worker processes
+    clone = pickle.loads(pickle.dumps(icp))
+    assert clone.config == icp.config
+
+
+def test_register_registrator_supports_lazy_adapters():
+    register_registrator("toy_adapter", "baselines.testing:ToyRegistrator")
+    try:
+        reg = get_registrator("toy_adapter", sleep_s=0.0)
+        assert isinstance(reg, ToyRegistrator) and isinstance(reg, Registrator)
+    finally:
+        _REGISTRY.pop("toy_adapter")
+
+
+@pytest.mark.parametrize(
+    "points, match",
+    [
+        (np.zeros((2, 3)), "at least 3 points"),
+        (np.zeros((0, 3)), "at least 3 points"),
+        (np.zeros((10, 2)), r"expected an \(N, 3\) array"),
+        (np.zeros((4, 3, 1)), r"expected an \(N, 3\) array"),
+        (np.zeros(5), r"expected an \(N, 3\) array"),
+        ([[0, 0, 0], [1, 0, 0], [0, float("nan"), 0]], "NaN or infinite"),
+        ([[0, 0, 0], [1, 0, 0], [0, float("inf"), 0]], "NaN or infinite"),
+        ([["a", "b", "c"]] * 3, "cannot be read"),
+    ],
+)
+def test_bad_clouds_raise_one_line_point_cloud_errors(points, match):
+    reg = ToyRegistrator()
+    good = l_shape_surface(50)
+    with pytest.raises(PointCloudError, match=match) as info:
+        reg.register(points, good)
+    assert str(info.value).startswith("src:") and "\n" not in str(info.value)
+    with pytest.raises(PointCloudError, match=match) as info:
+        reg.register(good, points)
+    assert str(info.value).startswith("ref:")
+
+
+def test_check_cloud_returns_float64_contiguous():
+    out = check_cloud(np.arange(12, dtype=np.float32).reshape(4, 3)[::-1])
+    assert out.dtype == np.float64 and out.flags.c_contiguous
+
+
+def test_register_batch_shapes_and_errors():
+    reg = ToyRegistrator()
+    truth = euler_transform((0, 0, 0), (0.1, -0.2, 0.3))
+    pairs = [make_pair(truth, 60, seed=s) for s in range(3)]
+    src = np.stack([p[0] for p in pairs])
+    ref = np.stack([p[1] for p in pairs])
+    out = reg.register_batch(src, ref)
+    assert out.shape == (3, 4, 4)
+    np.testing.assert_allclose(out[:, :3, 3], np.tile([0.1, -0.2, 0.3], (3, 1)), atol=1e-9)
+    with pytest.raises(PointCloudError, match="differ in size"):
+        reg.register_batch(src, ref[:2])
+    with pytest.raises(PointCloudError, match=r"\(B, N, 3\)"):
+        reg.register_batch(src[0], ref[0])
+    bad = src.copy()
+    bad[1, 4, 2] = np.nan
+    with pytest.raises(PointCloudError, match=r"src\[1\]"):
+        reg.register_batch(bad, ref)
+
+
+def test_transform_problem():
+    good = euler_transform((30, -20, 10), (0.1, 0.2, 0.3))
+    assert transform_problem(good) is None
+    assert "shape" in transform_problem(np.eye(3))
+    nan = good.copy()
+    nan[0, 0] = np.nan
+    assert "NaN" in transform_problem(nan)
+    assert "orthonormal" in transform_problem(np.diag([2.0, 1.0, 1.0, 1.0]))
+    assert "det" in transform_problem(np.diag([-1.0, 1.0, 1.0, 1.0]))
+    row = good.copy()
+    row[3, 0] = 0.5
+    assert "bottom row" in transform_problem(row)
+
+
+def test_project_to_rotation_is_proper():
+    rng = np.random.default_rng(0)
+    rot = project_to_rotation(rng.normal(size=(3, 3)))
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rot) == pytest.approx(1.0)
