@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 from omegaconf import OmegaConf
 
 from src.errors import ConfigError
@@ -19,3 +21,9 @@ def euler_seq_for(partial: str) -> str:
 def register_resolvers() -> None:
     if not OmegaConf.has_resolver("euler_seq"):
         OmegaConf.register_new_resolver("euler_seq", euler_seq_for)
+
+
+# conf/hydra/launcher/{joblib,submitit_slurm}.yaml deliberately share their names with the launcher
+# plugins' configs (so `hydra/launcher=joblib|submitit_slurm` picks ours); they are complete on
+# their own, so Hydra's deprecated same-name schema matching is harmless: silence its warning.
+warnings.filterwarnings("ignore", message=r"(?s).*is validated against ConfigStore schema with the same name")

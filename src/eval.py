@@ -1,6 +1,7 @@
 """Evaluate a checkpoint on an experiment's fixed test set and print the metrics table.
 
     python -m src.eval +exp=unseen_categories ckpt_path=outputs/.../checkpoints/best-*.ckpt
+    python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
 """
 
 from __future__ import annotations
@@ -14,7 +15,15 @@ from omegaconf import DictConfig
 from src.config import register_resolvers
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
-from src.runtime import build_trainer, exit_on_user_error, format_metrics, save_resolved_config, write_metrics
+from src.runtime import (
+    build_trainer,
+    exit_on_user_error,
+    format_metrics,
+    global_rank,
+    record_failures,
+    save_resolved_config,
+    write_metrics,
+)
 
 register_resolvers()
 
@@ -42,19 +51,22 @@ def load_checkpoint(path: str | None, expected_target: str) -> RegistrationModul
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     output_dir = Path(cfg.output_dir)
     module = load_checkpoint(cfg.ckpt_path, cfg.model.network._target_)
-    save_resolved_config(cfg, output_dir)
+    if global_rank() == 0:
+        save_resolved_config(cfg, output_dir)
     datamodule = hydra.utils.instantiate(cfg.data)
     trainer = build_trainer(cfg, with_checkpoints=False)
     trainer.test(module, datamodule=datamodule)
     metrics = module.test_results
-    write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": str(cfg.ckpt_path), "sampling": cfg.sampling,
-                                        "partial": cfg.partial, "dataset": cfg.data.dataset})
-    print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+    if trainer.is_global_zero:  # under DDP every rank holds the same (synchronised) metrics
+        write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": str(cfg.ckpt_path), "sampling": cfg.sampling,
+                                            "partial": cfg.partial, "dataset": cfg.data.dataset})
+        print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
     return metrics
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 @exit_on_user_error
+@record_failures
 def main(cfg: DictConfig) -> None:
     evaluate(cfg)
 

@@ -4,6 +4,10 @@
     python -m src.train +exp=unseen_categories            # the paper's experiment on ModelNet40
     python -m src.train +exp=unseen_shapes data=synthetic trainer=smoke   # 2-minute CPU demo
     python -m src.train ... ckpt_path=outputs/.../checkpoints/last.ckpt   # resume
+    python -m src.train -m +sweep=noise                   # a paper study as a sweep (docs/sweeps.md)
+
+A failing job writes ``failure.json`` into its run dir; ``on_failure=auto`` (default) then goes on
+with the sweep in a multirun and re-raises in a single run (``record`` / ``raise`` to force).
 """
 
 from __future__ import annotations
@@ -16,7 +20,15 @@ from omegaconf import DictConfig
 
 from src.config import register_resolvers
 from src.errors import CheckpointError
-from src.runtime import build_trainer, exit_on_user_error, format_metrics, save_resolved_config, write_metrics
+from src.runtime import (
+    build_trainer,
+    exit_on_user_error,
+    format_metrics,
+    global_rank,
+    record_failures,
+    save_resolved_config,
+    write_metrics,
+)
 
 register_resolvers()
 
@@ -24,7 +36,8 @@ register_resolvers()
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
     output_dir = Path(cfg.output_dir)
-    save_resolved_config(cfg, output_dir)
+    if global_rank() == 0:
+        save_resolved_config(cfg, output_dir)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = hydra.utils.instantiate(cfg.model)
@@ -37,14 +50,16 @@ def train(cfg: DictConfig) -> dict[str, float]:
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
     metrics = module.test_results
-    write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": best, "sampling": cfg.sampling,
-                                        "partial": cfg.partial, "dataset": cfg.data.dataset})
-    print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+    if trainer.is_global_zero:  # under DDP every rank holds the same (synchronised) metrics
+        write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": best, "sampling": cfg.sampling,
+                                            "partial": cfg.partial, "dataset": cfg.data.dataset})
+        print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
     return metrics
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 @exit_on_user_error
+@record_failures
 def main(cfg: DictConfig) -> None:
     train(cfg)
 

@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 
 from src.data.cache import Cache, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
-from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, PairDataset
+from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
 from src.data.transforms import build_pair_transforms
 from src.errors import ConfigError
@@ -120,8 +120,15 @@ class RegistrationDataModule(L.LightningDataModule):
         sampler = EpochSampler(len(self.datasets["train"]), self.seed)
         return self._loader("train", self.batch_size, sampler)
 
+    def _eval_loader(self, name: str) -> DataLoader:
+        """Sequential fixed set; under DDP each rank gets whole batches, none padded or repeated
+        (:class:`EvalShardSampler`; ``trainer=ddp`` sets ``use_distributed_sampler: false``)."""
+        if name not in self.splits:
+            raise ConfigError(f"data.splits has no {name!r} entry for this experiment")
+        return self._loader(name, self.eval_batch_size, EvalShardSampler(len(self.datasets[name]), self.eval_batch_size))
+
     def val_dataloader(self) -> DataLoader:
-        return self._loader("val", self.eval_batch_size)
+        return self._eval_loader("val")
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader("test", self.eval_batch_size)
+        return self._eval_loader("test")

@@ -11,7 +11,7 @@ import torch.distributed as dist
 from torch.utils.data import Dataset, Sampler
 
 from src.data.transforms import Compose
-from src.errors import PointCloudError
+from src.errors import ConfigError, PointCloudError
 
 TRAIN_STREAM, EVAL_STREAM = 1, 0
 
@@ -96,3 +96,43 @@ class EpochSampler(Sampler[int]):
         order = np.resize(order, self.per_rank * self.world)  # pad by wrapping so ranks get equal counts
         for i in order[self.rank :: self.world]:
             yield int(self.epoch * self.size + i)
+
+
+def _world_and_rank() -> tuple[int, int]:
+    initialized = dist.is_available() and dist.is_initialized()
+    return (dist.get_world_size(), dist.get_rank()) if initialized else (1, 0)
+
+
+class EvalShardSampler(Sampler[int]):
+    """Fixed evaluation indices ``0..size-1`` split across DDP ranks by whole batches, never padded.
+
+    Batch ``b`` (indices ``b*batch_size ... (b+1)*batch_size - 1``) goes to rank ``b % world``, so
+    every pair is evaluated exactly once and in the same batch as in a single-process run: the
+    sum-reduced metrics (:class:`~src.metrics.RegistrationMetrics`) equal the single-process ones up
+    to the order of the final float64 sum. Ranks may get different numbers of batches (the
+    LightningModule logs eval losses per epoch only, so uneven counts cannot deadlock). A rank
+    without any batch would skip the epoch-end synchronisation and hang the others, so fewer
+    batches than ranks is an error. Without DDP this is ``range(size)`` (the old sequential order).
+    """
+
+    def __init__(self, size: int, batch_size: int, world: int | None = None, rank: int | None = None) -> None:
+        if batch_size < 1:
+            raise ConfigError(f"eval batch size must be >= 1, got {batch_size}")
+        auto_world, auto_rank = _world_and_rank()
+        self.size, self.batch_size = size, batch_size
+        self.world = auto_world if world is None else world
+        self.rank = auto_rank if rank is None else rank
+        num_batches = math.ceil(size / batch_size)
+        if num_batches < self.world:
+            raise ConfigError(
+                f"{size} evaluation pairs make {num_batches} batch(es) of data.eval_batch_size={batch_size}, fewer than "
+                f"the {self.world} DDP processes: lower data.eval_batch_size or trainer.devices/num_nodes"
+            )
+        self.batches = list(range(self.rank, num_batches, self.world))
+
+    def __len__(self) -> int:
+        return sum(min(self.batch_size, self.size - b * self.batch_size) for b in self.batches)
+
+    def __iter__(self) -> Iterator[int]:
+        for b in self.batches:
+            yield from range(b * self.batch_size, min((b + 1) * self.batch_size, self.size))

@@ -236,6 +236,7 @@ def build_pair_transforms(
     prnet_num_keep: int = 768,
     rpmnet_p_keep: float = 0.7,
     rpmnet_num_points: int = 1024,
+    overlap_ratio: float | None = None,
 ) -> Compose:
     """The paper's pipelines (supplementary Sec. 2).
 
@@ -243,11 +244,23 @@ def build_pair_transforms(
     point → noise → shuffle. RPMNet manner ("opposite to PRNet"): pick pair → independent
     half-space crops (p_keep) → transform applied to X giving Y (the reference) → resample to
     ⌈p_keep·1024⌉ = 717 → noise → shuffle.
+
+    ``overlap_ratio`` (test-time study, PRNet manner only): the crop becomes
+    :class:`OverlapRatioCrop` — partial X, then Y = two adjacent parts of the overlapping and
+    non-overlapping regions in the requested proportion.
     """
     if partial not in PARTIAL_MANNERS:
         raise ConfigError(f"data.partial must be one of {PARTIAL_MANNERS}, got {partial!r}")
     pick = PickPair(sampling, pair_sampling, num_points)
     noise = GaussianNoise(noise_sigma, noise_clip)
+    if overlap_ratio is not None:
+        if partial != "prnet":
+            raise ConfigError(
+                f"data.pair.overlap_ratio is the paper's test protocol for the PRNet manner; got partial={partial!r}"
+            )
+        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
+        crop = OverlapRatioCrop(overlap_ratio, prnet_num_keep)
+        return Compose([pick, move, crop, noise, Shuffle()])
     if partial == "prnet":
         move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
         steps: list[Transform] = [pick, move, PRNetCrop(prnet_num_keep), noise, Shuffle()]
@@ -257,3 +270,85 @@ def build_pair_transforms(
     else:
         steps = [pick, RandomRigidTransform(rot_mag, trans_mag, apply_to="src"), noise, Shuffle()]
     return Compose(steps)
+
+
+def median_spacing(points: np.ndarray) -> float:
+    """Median distance from a point to its nearest other point of the same cloud."""
+    return float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+
+
+def overlap_fraction(points: np.ndarray, other: np.ndarray, radius: float) -> float:
+    """Fraction of ``points`` within ``radius`` of ``other`` (both in the same frame)."""
+    return float((cKDTree(other).query(points)[0] < radius).mean())
+
+
+def _nearest(points: np.ndarray, candidates: np.ndarray, seed: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` entries of index array ``candidates`` whose points are nearest to ``seed``."""
+    if k <= 0:
+        return candidates[:0]
+    _, idx = cKDTree(points[candidates]).query(seed, k=k)
+    return candidates[np.atleast_1d(idx)]
+
+
+@dataclass
+class OverlapRatioCrop:
+    """The paper's overlap-ratio protocol ("Different Overlapping Ratio", Sec. 4): partial X, then
+    build Y from two adjacent parts of the overlapping and non-overlapping regions.
+
+    1. X (source) keeps the ``num_keep`` nearest neighbours of a far random point p (PRNet's
+       crop): the part of the shape inside a ball around p whose radius is the distance to the
+       farthest kept point.
+    2. The overlapping region O of the full reference is the same ball around p carried into the
+       reference frame by the ground truth (the surface X covers); N is the rest. The ball is
+       huge (p is ~500 away), so O and N meet along an almost flat border.
+    3. A seed on that border (the point of O nearest to a random point of N); Y takes the
+       ``round(ratio·num_keep)`` points of O and the ``num_keep - round(ratio·num_keep)`` points of
+       N nearest to the seed: two adjacent parts, a fraction ``ratio`` of Y overlapping X.
+
+    With once-sampled data the fraction of Y with an exact counterpart in X is exactly
+    ``round(ratio·num_keep) / num_keep``. When a region holds too few points (twice-sampled data
+    at ratio 1.0: O has num_keep ± a few points), Y is built at the same ratio from what there is
+    and topped up to ``num_keep`` by repeating random points of each part in that ratio.
+    """
+
+    ratio: float
+    num_keep: int = 768
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.ratio <= 1.0:
+            raise ConfigError(f"overlap_ratio must be in [0, 1], got {self.ratio}")
+
+    def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
+        src, ref = sample["points_src"], sample["points_ref"]
+        for key, points in (("points_src", src), ("points_ref", ref)):
+            if points.shape[0] < self.num_keep:
+                raise DatasetError(f"{key} has {points.shape[0]} points, the overlap-ratio crop keeps {self.num_keep}")
+        far = rng.random(3) + 500.0 * rng.choice([1.0, -1.0])
+        dist, idx = cKDTree(src).query(far, k=self.num_keep)
+        partial_src = src[np.sort(np.atleast_1d(idx))]
+        gt = np.asarray(sample["transform_gt"], dtype=np.float64)
+        far_ref = gt[:3, :3] @ far + gt[:3, 3]  # float64: distances of ~500 must stay exact to ~1e-7
+        inside = np.linalg.norm(ref.astype(np.float64) - far_ref, axis=1) <= float(np.max(dist)) + 1e-6
+        over, non = np.flatnonzero(inside), np.flatnonzero(~inside)
+        if over.size == 0:
+            raise DatasetError("no reference point lies in the part of the shape the partial source covers")
+        want_over = int(round(self.ratio * self.num_keep))
+        want_non = self.num_keep - want_over
+        scale = min(1.0, over.size / want_over if want_over else 1.0, non.size / want_non if want_non else 1.0)
+        n_over, n_non = min(over.size, int(round(want_over * scale))), min(non.size, int(round(want_non * scale)))
+        if non.size:
+            seed = ref[_nearest(ref, over, ref[rng.choice(non)], 1)[0]]
+        else:
+            seed = ref[rng.choice(over)]
+        part_over, part_non = _nearest(ref, over, seed, n_over), _nearest(ref, non, seed, n_non)
+        keep = [part_over, part_non]
+        if n_over < want_over and part_over.size:
+            keep.append(rng.choice(part_over, size=want_over - n_over))
+        if n_non < want_non and part_non.size:
+            keep.append(rng.choice(part_non, size=want_non - n_non))
+        keep = np.sort(np.concatenate(keep))
+        if keep.size != self.num_keep:  # a ratio that one empty part cannot give (e.g. 0.0 without N)
+            keep = np.sort(np.concatenate([keep, rng.choice(keep, size=self.num_keep - keep.size)]))
+        sample["points_src"] = partial_src
+        sample["points_ref"] = ref[keep]
+        return sample

@@ -10,6 +10,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
+from torchmetrics import MeanMetric
 
 from src.metrics import RegistrationMetrics
 
@@ -44,6 +45,9 @@ class RegistrationModule(L.LightningModule):
         self.network: nn.Module = hydra.utils.instantiate(network)
         self.val_metrics = RegistrationMetrics(euler_seq)
         self.test_metrics = RegistrationMetrics(euler_seq)
+        # Eval losses as sum-reduced metrics: Lightning's own sync_dist mean truncates the (integer)
+        # pair count when it averages it across gloo ranks, skewing the loss for odd totals.
+        self.eval_losses = nn.ModuleDict({"val": MeanMetric(), "test": MeanMetric()})
         self.test_results: dict[str, float] = {}
 
     @property
@@ -68,7 +72,9 @@ class RegistrationModule(L.LightningModule):
     def _evaluate(self, batch: dict[str, Tensor], metrics: RegistrationMetrics, prefix: str) -> None:
         outputs = self.network(batch["points_src"], batch["points_ref"], batch["transform_gt"])
         losses = self.network.loss(outputs, batch["transform_gt"])
-        self.log(f"{prefix}/loss", losses["loss"], batch_size=batch["points_src"].shape[0], sync_dist=True)
+        batch_size = batch["points_src"].shape[0]
+        self.eval_losses[prefix].update(losses["loss"].detach(), weight=batch_size)
+        self.log(f"{prefix}/loss", self.eval_losses[prefix], on_step=False, on_epoch=True, batch_size=batch_size)
         metrics.update(outputs["transforms"][-1].float(), batch["transform_gt"], batch["points_src"], batch["points_ref"])
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
