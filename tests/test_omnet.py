@@ -112,3 +112,15 @@ def test_invalid_options_are_rejected():
         OMNet(mask_mode="soft")
     with pytest.raises(ValueError, match="trans_loss"):
         OMNet(trans_loss="l3")
+
+
+def test_poses_stay_float32_and_rigid_under_bf16_autocast():
+    model = _small().eval()
+    src, ref, gt = _batch()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(src, ref, gt)
+        losses = model.loss(out, gt)
+    final = out["transforms"][-1]
+    assert final.dtype == torch.float32 and torch.isfinite(losses["loss"])
+    rot = final[:, :3, :3]
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand(4, 3, 3), atol=1e-5, rtol=0)

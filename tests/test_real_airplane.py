@@ -58,3 +58,18 @@ def test_asking_for_the_withheld_test_split_stops_with_the_prepare_message(cache
     dm = _datamodule(cache_root, "data.splits.test.split=test")
     with pytest.raises(DatasetError, match=r"100 of 100 shapes .* missing .*first: airplane_0627"):
         dm.setup("test")
+
+
+def test_stanford_bunny_gives_repeated_fixed_pairs(tmp_path):
+    bunny = ZIP.parent / "stanford" / "bunny_npm_decimated.off"
+    prepare("stanford", source=bunny, cache_root=tmp_path, num_samplings=4, workers=1)
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("config", overrides=["+exp=stanford", "pairs_per_scan=3", f"data.cache_root={tmp_path}",
+                                           "data.num_workers=0", "output_dir=/tmp/unused"])
+    dm = hydra.utils.instantiate(cfg.data)
+    dm.setup("test")
+    pairs = [dm.datasets["test"][i] for i in range(3)]
+    assert len(dm.datasets["test"]) == 3 and dm.cache.categories == ["bunny_npm_decimated"]
+    assert not torch.equal(pairs[0]["transform_gt"], pairs[1]["transform_gt"])
+    assert pairs[0]["points_src"].shape == (768, 3)
+    torch.testing.assert_close(dm.datasets["test"][2]["points_ref"], pairs[2]["points_ref"])

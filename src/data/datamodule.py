@@ -40,7 +40,8 @@ def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmet
 
 def select_shapes(cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bool) -> tuple[str, np.ndarray]:
     """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['slice']``
-    (``[start, stop]`` as a Python slice over them in split-list order, e.g. ``[-100, null]``)."""
+    (``[start, stop]`` as a Python slice over them in split-list order, e.g. ``[-100, null]``), then
+    each repeated ``spec['repeat']`` times (several fixed pairs per shape, e.g. for a few real scans)."""
     split = cache.split(spec["split"])
     categories = resolve_categories(spec.get("categories", "all"), cache, remove_axisymmetric)
     wanted = [cache.categories.index(c) for c in categories]
@@ -48,7 +49,13 @@ def select_shapes(cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bo
     bounds = spec.get("slice")
     if bounds is not None:
         indices = indices[slice(*(None if b is None else int(b) for b in bounds))]
-    return spec["split"], indices
+    unknown = set(spec) - {"split", "categories", "slice", "repeat"}
+    if unknown:
+        raise ConfigError(f"data.splits entries take split, categories, slice and repeat; unknown: {sorted(unknown)}")
+    repeat = int(spec.get("repeat", 1))
+    if repeat < 1:
+        raise ConfigError(f"data.splits repeat must be >= 1, got {repeat}")
+    return spec["split"], np.tile(indices, repeat)
 
 
 class RegistrationDataModule(L.LightningDataModule):

@@ -171,7 +171,7 @@ class OMNet(nn.Module):
     def overlap_labels(self, src: Tensor, ref: Tensor, transform_gt: Tensor, mask_src: Tensor, mask_ref: Tensor) -> tuple[Tensor, Tensor]:
         """1 where a point's nearest neighbour in the other cloud, under the ground truth, is closer than
         ``overlap_dist``; points already masked out never match."""
-        dist = torch.cdist(se3_apply(transform_gt, src), ref)
+        dist = torch.cdist(se3_apply(transform_gt.float(), src.float()), ref.float())
         far = 1e6
         dist = dist + far * (1 - mask_src).unsqueeze(2) + far * (1 - mask_ref).unsqueeze(1)
         return (dist.amin(dim=2) < self.overlap_dist).long(), (dist.amin(dim=1) < self.overlap_dist).long()
@@ -183,16 +183,19 @@ class OMNet(nn.Module):
         quat = points_src.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(b, 4)
         trans = points_src.new_zeros(b, 3)
         out: dict[str, list] = {"transforms": [], "quats": [], "translations": [], "mask_logits": [], "mask_labels": [], "masks": []}
+        full_precision = torch.autocast(points_src.device.type, enabled=False)  # poses stay float32 under bf16
         for i in range(self.num_iters):
-            pose = se3_from_rt(quat_to_matrix(quat), trans).detach()
-            moved = se3_apply(pose, points_src)
+            with full_precision:
+                moved = se3_apply(se3_from_rt(quat_to_matrix(quat), trans).detach(), points_src.float())
             d_quat, d_trans, logits_src, logits_ref = self.block(i)(moved, points_ref, mask_src, mask_ref)
-            quat_prev, trans_prev = quat.detach(), trans.detach()
-            quat = quat_multiply(d_quat, quat_prev)
-            trans = (quat_to_matrix(d_quat) @ trans_prev.unsqueeze(-1)).squeeze(-1) + d_trans
+            with full_precision:
+                d_quat, d_trans = quat_normalize(d_quat.float()), d_trans.float()
+                quat_prev, trans_prev = quat.detach(), trans.detach()
+                quat = quat_multiply(d_quat, quat_prev)
+                trans = (quat_to_matrix(d_quat) @ trans_prev.unsqueeze(-1)).squeeze(-1) + d_trans
+                out["transforms"].append(se3_from_rt(quat_to_matrix(quat), trans))
             out["quats"].append(quat)
             out["translations"].append(trans)
-            out["transforms"].append(se3_from_rt(quat_to_matrix(quat), trans))
             out["masks"].append((mask_src, mask_ref))
             if self.mask_module:
                 out["mask_logits"].append((logits_src, logits_ref))
