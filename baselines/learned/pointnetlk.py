@@ -1,0 +1,91 @@
+"""PointNetLK (Aoki et al., CVPR 2019): PointNet global features registered by inverse-compositional
+Lucas–Kanade with a finite-difference Jacobian.
+
+From the paper: a PointNet (no T-nets) φ maps a cloud to a global feature; the LK Jacobian of φ
+w.r.t. the six twist parameters is approximated by finite differences at the template, and the
+twist update −J⁺ r is composed on the left, ``g ← exp(Δξ) g``, until convergence; trained end to end
+through the loop with the loss ‖G_est·G_gt⁻¹ − I₄‖²_F plus (optionally) the feature residual ‖r‖².
+
+Facts taken from the authors' code (hmgoforth/PointNetLK, ``ptlk/pointlk.py``, ``ptlk/pointnet.py``,
+``experiments/train_pointlk.py``), not its code:
+
+* encoder: shared MLP 3-64-64 | 64-128-1024 (Conv1d + BatchNorm + ReLU after every layer, the
+  1024-wide one included), max pooling, ``dim_k = 1024``, no T-net;
+* LK: step δ = 1e-2 for all six twist parameters (not learned), at most 10 iterations, stop when the
+  batch's largest ‖Δξ‖ < 1e-7, both clouds mean-centred first (``p0_zero_mean = p1_zero_mean = True``)
+  and the centring undone on the result;
+* BatchNorm: in training, one forward of each cloud in training mode updates the running statistics,
+  then the encoder is switched to eval mode for the whole LK (Jacobian and iterations);
+* loss (``_loss_type = 1``, the default): ``rsq(r) + comp(g, igt)`` — the squared residual summed over
+  the batch and features, plus ``mse(g·igt, I)·16`` = the batch mean of ‖G_est·G_gt⁻¹ − I‖²_F;
+* optimiser: Adam with PyTorch defaults (lr 1e-3), no weight decay, no schedule, batch 32, 200 epochs.
+
+Framework mapping: the reference is LK's template (p0) and the source its moved cloud (p1), so g
+maps source → reference, the framework's ``transform_gt`` direction.
+
+Deviations: the hidden layers have no bias before BatchNorm (the same function; 1,344 fewer
+parameters than the official 151k), a singular JᵀJ gives a zero update for that sample instead of
+aborting the whole batch, ``width`` scales the channels (1.0 = the paper's network; the framework's
+``model_scale`` for CPU demos), and ``feature_loss_weight`` can drop the residual term (0 = the paper's
+transform-only loss).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from baselines.learned.common.encoders import PointNetEncoder
+from baselines.learned.common.global_feature import (
+    composed_identity_error,
+    eval_mode,
+    full_precision,
+    lk_register,
+    scaled_channels,
+)
+from src.geometry import se3_inverse
+
+
+def pointnet_channels(dim_k: int, width: float) -> tuple[int, ...]:
+    """PointNetLK's / FMR's encoder channels 3-64-64-64-128-dim_k, scaled by ``width``."""
+    return (3, *(scaled_channels(c, width) for c in (64, 64, 64, 128, dim_k)))
+
+
+class PointNetLK(nn.Module):
+    def __init__(
+        self,
+        dim_k: int = 1024,
+        width: float = 1.0,
+        max_iter: int = 10,
+        delta: float = 1e-2,
+        learn_delta: bool = False,
+        xtol: float = 1e-7,
+        feature_loss_weight: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.max_iter, self.xtol, self.feature_loss_weight = max_iter, xtol, feature_loss_weight
+        self.encoder = PointNetEncoder(pointnet_channels(dim_k, width))
+        step = torch.full((1, 6), float(delta))
+        if learn_delta:
+            self.delta = nn.Parameter(step)
+        else:
+            self.register_buffer("delta", step)
+
+    def features(self, points: Tensor) -> Tensor:
+        return self.encoder(points)[1]
+
+    def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:
+        if self.training:  # official: update the BatchNorm statistics with both clouds, then freeze them
+            with torch.no_grad():
+                self.features(points_ref - points_ref.mean(dim=1, keepdim=True))
+                self.features(points_src - points_src.mean(dim=1, keepdim=True))
+        with eval_mode(self.encoder):
+            result = lk_register(self.features, points_src, points_ref, self.delta, self.max_iter, self.xtol)
+        return {"transforms": result.transforms, "residual": result.residual, "iterations": result.iterations}
+
+    def loss(self, outputs: dict, transform_gt: Tensor) -> dict[str, Tensor]:
+        with full_precision(transform_gt.device):  # float32 even under bf16 autocast
+            transform = composed_identity_error(outputs["transforms"][-1], se3_inverse(transform_gt)).mean()
+            feature = (outputs["residual"] ** 2).sum()
+            total = transform + self.feature_loss_weight * feature
+            return {"loss": total, "loss/transform": transform, "loss/feature": feature}

@@ -1,0 +1,97 @@
+"""DeepGMR: rigid estimates both ways, GMM posterior, rotation invariance through RRI, loss, training."""
+
+import pytest
+import torch
+
+from baselines.learned.deepgmr import DeepGMR
+from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
+
+
+def _batch(b=4, n=64, seed=0):
+    """Noisy, partially overlapping halves of a random anisotropic blob, and their transform."""
+    g = torch.Generator().manual_seed(seed)
+    base = torch.randn(b, 2 * n, 3, generator=g) * torch.tensor([0.6, 0.4, 0.2]) + torch.tensor([0.2, 0.0, 0.0])
+    ref = base[:, :n] + 0.02 * torch.randn(b, n, 3, generator=g)
+    src = base[:, n // 2:n // 2 + n] + 0.02 * torch.randn(b, n, 3, generator=g)
+    gt = se3_from_rt(euler_to_matrix(torch.rand(b, 3, generator=g) * 0.8, "zyx"), torch.rand(b, 3, generator=g) - 0.5)
+    return se3_apply(se3_inverse(gt), src), ref, gt
+
+
+def _assert_rigid(transform):
+    rot = transform[:, :3, :3]
+    assert torch.isfinite(transform).all()
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand_as(rot), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(len(rot)), atol=1e-5, rtol=0)
+    torch.testing.assert_close(transform[:, 3], torch.tensor([0.0, 0, 0, 1]).expand(len(rot), 4))
+
+
+@pytest.mark.parametrize("kwargs", [dict(), dict(use_rri=False), dict(exact_procrustes=True)])
+def test_forward_returns_rigid_transforms_and_a_posterior(kwargs):
+    torch.manual_seed(0)
+    model = DeepGMR(width=0.125, k=8, **kwargs)
+    src, ref, gt = _batch(b=3, n=96)
+    out = model(src, ref, gt)
+    assert len(out["transforms"]) == 1
+    _assert_rigid(out["transforms"][-1])
+    _assert_rigid(out["transform_reverse"])
+    for gamma in out["gamma"]:
+        assert gamma.shape == (3, 96, 16)
+        torch.testing.assert_close(gamma.sum(-1), torch.ones(3, 96))
+    model.eval()
+    with torch.no_grad():
+        _assert_rigid(model(src, ref)["transforms"][-1])
+
+
+def test_rri_makes_the_estimate_equivariant_to_a_rotated_source():
+    # float64: an untrained network's components all sit near the centroid, an ill-conditioned SVD
+    torch.manual_seed(0)
+    model = DeepGMR(width=0.125, k=8).double().eval()
+    src, ref, _ = (x.double() for x in _batch(b=2, n=80))
+    f64 = dict(dtype=torch.float64)
+    extra = se3_from_rt(euler_to_matrix(torch.rand(2, 3, **f64) * 3, "xyz"), torch.randn(2, 3, **f64))
+    with torch.no_grad():
+        out = model(src, ref)
+        moved = model(se3_apply(extra, src), ref)
+    torch.testing.assert_close(moved["gamma"][0], out["gamma"][0])
+    torch.testing.assert_close(moved["gmm_src"][1], se3_apply(extra, out["gmm_src"][1]))
+    torch.testing.assert_close(moved["transforms"][-1] @ extra, out["transforms"][-1], atol=1e-6, rtol=0)
+
+
+def test_gmm_steps_run_in_float32_under_bf16_autocast():
+    torch.manual_seed(0)
+    model = DeepGMR(width=0.125, k=8)
+    src, ref, gt = _batch()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(src, ref, gt)
+        loss = model.loss(out, gt)["loss"]
+    assert out["transforms"][-1].dtype == torch.float32 and loss.dtype == torch.float32
+    _assert_rigid(out["transforms"][-1])
+    loss.backward()
+
+
+def test_loss_is_the_official_two_way_mse():
+    model = DeepGMR(width=0.125, k=8)
+    src, ref, gt = _batch()
+    out = model(src, ref, gt)
+    losses = model.loss(out, gt)
+    eye = torch.eye(4).expand(4, 4, 4)
+    forward = torch.nn.functional.mse_loss(out["transforms"][-1] @ torch.inverse(gt), eye)
+    reverse = torch.nn.functional.mse_loss(out["transform_reverse"] @ gt, eye)
+    torch.testing.assert_close(losses["loss"], forward + reverse)
+    losses["loss"].backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters())
+
+
+def test_training_steps_lower_the_loss_on_a_tiny_batch():
+    torch.manual_seed(0)
+    model = DeepGMR(width=0.125, k=8)
+    src, ref, gt = _batch()
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(10):
+        optimizer.zero_grad()
+        loss = model.loss(model(src, ref, gt), gt)["loss"]
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.2 * losses[0]

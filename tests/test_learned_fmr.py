@@ -1,0 +1,86 @@
+"""FMR (supervised): rigid estimates, decoder reconstructions, Chamfer + transform loss, learned step,
+training lowers the loss."""
+
+import torch
+
+from baselines.learned.common.global_feature import chamfer_distance
+from baselines.learned.fmr import FMR
+from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
+
+
+def _batch(b=4, n=64, seed=0):
+    """Noisy, partially overlapping halves of a random anisotropic blob, and their transform."""
+    g = torch.Generator().manual_seed(seed)
+    base = torch.randn(b, 2 * n, 3, generator=g) * torch.tensor([0.6, 0.4, 0.2]) + torch.tensor([0.2, 0.0, 0.0])
+    ref = base[:, :n] + 0.02 * torch.randn(b, n, 3, generator=g)
+    src = base[:, n // 2:n // 2 + n] + 0.02 * torch.randn(b, n, 3, generator=g)
+    gt = se3_from_rt(euler_to_matrix(torch.rand(b, 3, generator=g) * 0.8, "zyx"), torch.rand(b, 3, generator=g) - 0.5)
+    return se3_apply(se3_inverse(gt), src), ref, gt
+
+
+def _assert_rigid(transform):
+    rot = transform[:, :3, :3]
+    assert torch.isfinite(transform).all()
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand_as(rot), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(len(rot)), atol=1e-5, rtol=0)
+    torch.testing.assert_close(transform[:, 3], torch.tensor([0.0, 0, 0, 1]).expand(len(rot), 4))
+
+
+def test_forward_returns_rigid_transforms_and_reconstructions():
+    torch.manual_seed(0)
+    model = FMR(width=0.125, decoder_points=50)
+    src, ref, gt = _batch(b=3, n=96)
+    out = model(src, ref, gt)
+    assert len(out["transforms"]) == 10
+    for transform in out["transforms"]:
+        _assert_rigid(transform)
+    rec_ref, rec_src = out["reconstructions"]
+    assert rec_ref.shape == rec_src.shape == (3, 50, 3)
+    model.eval()
+    with torch.no_grad():
+        _assert_rigid(model(src, ref)["transforms"][-1])
+
+
+def test_loss_is_chamfer_plus_transform_and_delta_is_learned():
+    model = FMR(width=0.125, decoder_points=40, max_iter=3)
+    src, ref, gt = _batch()
+    out = model(src, ref, gt)
+    losses = model.loss(out, gt)
+    (ref_c, src_c), (rec_ref, rec_src) = out["centred"], out["reconstructions"]
+    torch.testing.assert_close(ref_c.mean(1), torch.zeros(4, 3), atol=1e-6, rtol=0)
+    chamfer = chamfer_distance(ref_c, rec_ref) + chamfer_distance(src_c, rec_src)
+    torch.testing.assert_close(losses["loss/chamfer"], chamfer)
+    expected = ((out["transforms"][-1] @ se3_inverse(gt) - torch.eye(4)) ** 2).sum((1, 2)).mean()
+    torch.testing.assert_close(losses["loss/transform"], expected)
+    torch.testing.assert_close(losses["loss"], losses["loss/chamfer"] + losses["loss/transform"])
+    losses["loss"].backward()
+    assert model.delta.grad is not None and torch.isfinite(model.delta.grad).all() and model.delta.grad.abs().sum() > 0
+    assert model.decoder.out.weight.grad.abs().sum() > 0
+
+
+def test_training_steps_lower_the_loss_on_a_tiny_batch():
+    # BatchNorm statistics warmed up first: LK runs on the running statistics (as the official code).
+    torch.manual_seed(0)
+    model = FMR(width=0.125, decoder_points=64)
+    src, ref, gt = _batch()
+    with torch.no_grad():
+        for _ in range(40):
+            model.features(ref - ref.mean(1, keepdim=True))
+            model.features(src - src.mean(1, keepdim=True))
+
+    def eval_losses():
+        model.eval()
+        with torch.no_grad():
+            losses = model.loss(model(src, ref, gt), gt)
+        model.train()
+        return {k: v.item() for k, v in losses.items()}
+
+    before = eval_losses()
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    for _ in range(20):
+        optimizer.zero_grad()
+        model.loss(model(src, ref, gt), gt)["loss"].backward()
+        optimizer.step()
+    after = eval_losses()
+    assert after["loss"] < 0.5 * before["loss"]
+    assert after["loss/transform"] < 0.5 * before["loss/transform"]
