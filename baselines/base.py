@@ -267,11 +267,18 @@ def _build_config(
 # --------------------------------------------------------------------------------------
 
 #: name -> Registrator subclass, or "module:Class" imported on first use.
+LEARNED_DISPLAY_NAMES: dict[str, str] = {
+    "omnet": "OMNet", "dcp": "DCP", "prnet": "PRNet", "rpmnet": "RPMNet", "idam": "IDAM",
+    "pointnetlk": "PointNetLK", "fmr": "FMR", "deepgmr": "DeepGMR",
+}
+"""Learned networks, entering the grid through adapters around ``src.train`` checkpoints."""
+
 _REGISTRY: dict[str, type[Registrator] | str] = {
     "icp": "baselines.classical.icp:ICP",
     "fgr": "baselines.classical.fgr:FGR",
     "symmetric_icp": "baselines.classical.symmetric_icp:SymmetricICP",
     "goicp": "baselines.classical.goicp:GoICP",
+    **{name: f"baselines.learned.adapter:{display}Registrator" for name, display in LEARNED_DISPLAY_NAMES.items()},
 }
 _ALIASES: dict[str, str] = {"go_icp": "goicp", "symicp": "symmetric_icp", "sym_icp": "symmetric_icp"}
 

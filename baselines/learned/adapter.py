@@ -1,0 +1,369 @@
+"""Learned networks behind the :class:`~baselines.base.Registrator` interface.
+
+:class:`LearnedRegistrator` wraps a checkpoint written by ``src.train``
+(:meth:`RegistrationModule.load_from_checkpoint <src.models.module.RegistrationModule>`) and runs
+whole batches through the network with torch, on the GPU when one is available (``device=auto``).
+One subclass per learned method is registered with :func:`~baselines.base.register_registrator`
+under its method name:
+
+======================  ===========================================
+name                    network the checkpoint must hold
+======================  ===========================================
+``omnet``               ``src.models.omnet.OMNet``
+``dcp``                 ``baselines.learned.dcp.DCP``
+``prnet``               ``baselines.learned.prnet.PRNet``
+``rpmnet``              ``baselines.learned.rpmnet.RPMNet``
+``idam``                ``baselines.learned.idam.IDAM``
+``pointnetlk``          ``baselines.learned.pointnetlk.PointNetLK``
+``fmr``                 ``baselines.learned.fmr.FMR``
+``deepgmr``             ``baselines.learned.deepgmr.DeepGMR``
+======================  ===========================================
+
+>>> import baselines.learned.adapter  # registers the names
+>>> from baselines import get_registrator
+>>> omnet = get_registrator("omnet", checkpoint="outputs/.../checkpoints/best-1000.ckpt")
+>>> T = omnet.register_batch(src, ref)          # (B, 4, 4) in one forward pass
+>>> results = run_batches(omnet, pairs)         # like baselines.run_pairs, batched
+
+Each method requires ``checkpoint=PATH``; a missing file, an unreadable one, or a checkpoint of
+another network than the method name says raise :class:`~src.errors.CheckpointError` (one line)
+when the registrator is built, so a grid fails before it starts. The weights themselves are loaded
+lazily (:meth:`LearnedRegistrator.setup`), so the object stays cheap to build and to pickle.
+
+``fresh_weights=true`` (instead of a checkpoint) builds the network from ``conf/model/<name>.yaml``
+with freshly initialised weights — for timing only (:mod:`benchmarks.speed` labels it so); the
+estimates of such a network are meaningless.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from baselines.base import (
+    LEARNED_DISPLAY_NAMES,
+    Registrator,
+    RegistratorConfig,
+    check_cloud,
+    register_registrator,
+    transform_problem,
+)
+from baselines.runner import PairResult
+from src.errors import CheckpointError, ConfigError
+
+__all__ = [
+    "DISPLAY_NAMES",
+    "LEARNED_METHODS",
+    "LearnedConfig",
+    "LearnedRegistrator",
+    "checkpoint_digest",
+    "read_checkpoint_network",
+    "run_batches",
+]
+
+#: method name -> ``_target_`` of the network its checkpoints hold (conf/model/<name>.yaml).
+LEARNED_METHODS: dict[str, str] = {
+    "omnet": "src.models.omnet.OMNet",
+    "dcp": "baselines.learned.dcp.DCP",
+    "prnet": "baselines.learned.prnet.PRNet",
+    "rpmnet": "baselines.learned.rpmnet.RPMNet",
+    "idam": "baselines.learned.idam.IDAM",
+    "pointnetlk": "baselines.learned.pointnetlk.PointNetLK",
+    "fmr": "baselines.learned.fmr.FMR",
+    "deepgmr": "baselines.learned.deepgmr.DeepGMR",
+}
+#: method name -> the name the paper's tables use.
+DISPLAY_NAMES = LEARNED_DISPLAY_NAMES
+DEVICES = ("auto", "cpu", "cuda")
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+@dataclass
+class LearnedConfig(RegistratorConfig):
+    """Settings of a learned method.
+
+    Attributes:
+        checkpoint: a ``.ckpt`` written by ``src.train`` for this method's network (required
+            unless ``fresh_weights``).
+        device: ``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda``.
+        batch_size: pairs per forward pass in :func:`run_batches`.
+        fresh_weights: build the network from ``conf/model/<name>.yaml`` with random weights
+            (timing only; no checkpoint).
+        model_scale: channel-width multiplier for ``fresh_weights`` (1.0 = the paper's network).
+        model_overrides: extra Hydra overrides for ``fresh_weights`` (e.g. ``model.network.num_iters=2``).
+    """
+
+    checkpoint: str | None = None
+    device: str = "auto"
+    batch_size: int = 64
+    fresh_weights: bool = False
+    model_scale: float = 1.0
+    model_overrides: Sequence[str] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        if self.device not in DEVICES:
+            raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
+        if int(self.batch_size) < 1:
+            raise ConfigError(f"batch_size must be >= 1, got {self.batch_size!r}")
+        if not self.model_scale > 0:
+            raise ConfigError(f"model_scale must be > 0, got {self.model_scale!r}")
+        if self.checkpoint is not None:
+            self.checkpoint = str(self.checkpoint)
+        self.model_overrides = tuple(str(o) for o in (self.model_overrides or ()))
+
+
+def read_checkpoint_network(path: str | Path) -> str:
+    """The ``_target_`` of the network stored in a ``src.train`` checkpoint (CheckpointError if
+    the file is missing, unreadable or was not written by ``src.train``)."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+        except RuntimeError:  # old (non-zip) serialisation cannot be memory-mapped
+            ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointError(f"{path} is not a readable PyTorch checkpoint ({type(err).__name__})") from err
+    hparams = ckpt.get("hyper_parameters", {}) if isinstance(ckpt, dict) else {}
+    target = (hparams.get("network") or {}).get("_target_") if isinstance(hparams, dict) else None
+    if target is None:
+        raise CheckpointError(f"{path} was not written by src.train (no network config inside)")
+    return str(target)
+
+
+def checkpoint_digest(path: str | Path) -> str:
+    """sha256 of a checkpoint file (identifies the weights in the grid's cell keys)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _method_of_target(target: str) -> str | None:
+    return next((m for m, t in LEARNED_METHODS.items() if t == target), None)
+
+
+class LearnedRegistrator(Registrator):
+    """A trained network (a ``src.train`` checkpoint) as a Registrator; see the module docstring.
+
+    Subclasses set ``name`` and ``network_target``; build them with
+    ``get_registrator("<name>", checkpoint=PATH)``.
+    """
+
+    name: ClassVar[str] = "learned"
+    needs_training: ClassVar[bool] = True
+    needs_normals: ClassVar[bool] = False
+    config_cls: ClassVar[type[RegistratorConfig]] = LearnedConfig
+    network_target: ClassVar[str] = ""
+
+    def __init__(self, config: LearnedConfig | None = None, **overrides: Any) -> None:
+        super().__init__(config, **overrides)
+        cfg: LearnedConfig = self.config
+        self._module = None
+        self._device = None
+        if cfg.fresh_weights:
+            if cfg.checkpoint:
+                raise ConfigError(f"{self.name}: give either checkpoint=PATH or fresh_weights=true, not both")
+            return
+        if not cfg.checkpoint:
+            raise CheckpointError(
+                f"method '{self.name}' needs a checkpoint: pass checkpoint=PATH (a .ckpt written by "
+                f"`python -m src.train model={self.name}`)"
+            )
+        found = read_checkpoint_network(cfg.checkpoint)
+        if found != self.network_target:
+            other = _method_of_target(found)
+            hint = f"; use it as method '{other}'" if other else ""
+            raise CheckpointError(
+                f"checkpoint {cfg.checkpoint} holds a {found} network, not {self.network_target} "
+                f"(method '{self.name}'){hint}"
+            )
+
+    # -- labels ------------------------------------------------------------------------
+
+    @property
+    def label(self) -> str:
+        """Display name; ``(untrained)`` marks freshly initialised weights."""
+        base = DISPLAY_NAMES.get(self.name, self.name)
+        return f"{base} (untrained)" if self.config.fresh_weights else base
+
+    # -- device and weights ------------------------------------------------------------
+
+    @property
+    def device(self):
+        import torch
+
+        if self._device is None:
+            wanted = self.config.device
+            if wanted == "auto":
+                wanted = "cuda" if torch.cuda.is_available() else "cpu"
+            elif wanted == "cuda" and not torch.cuda.is_available():
+                raise ConfigError(f"{self.name}: device=cuda but CUDA is not available here")
+            self._device = torch.device(wanted)
+        return self._device
+
+    def _build_fresh(self):
+        import hydra
+        from hydra import compose, initialize_config_dir
+        from hydra.core.global_hydra import GlobalHydra
+
+        from src.config import register_resolvers
+
+        register_resolvers()
+        cfg: LearnedConfig = self.config
+        overrides = [f"model={self.name}", f"model_scale={cfg.model_scale}", *cfg.model_overrides]
+        if GlobalHydra.instance().is_initialized():
+            model_cfg = compose("config", overrides=overrides).model
+        else:
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                model_cfg = compose("config", overrides=overrides).model
+        module = hydra.utils.instantiate(model_cfg)
+        if module.network_target != self.network_target:  # pragma: no cover - conf/model out of sync
+            raise ConfigError(f"conf/model/{self.name}.yaml builds {module.network_target}, expected {self.network_target}")
+        return module
+
+    def setup(self) -> None:
+        """Load the checkpoint (or build fresh weights) onto the device, in eval mode. Idempotent."""
+        if self._module is not None:
+            return
+        if self.config.fresh_weights:
+            module = self._build_fresh()
+        else:
+            from src.models.module import RegistrationModule
+
+            module = RegistrationModule.load_from_checkpoint(self.config.checkpoint, map_location="cpu")
+        self._module = module.to(self.device).eval()
+
+    @property
+    def module(self):
+        self.setup()
+        return self._module
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_module"] = None  # reloaded lazily in the receiving process
+        state["_device"] = None
+        return state
+
+    # -- registration ------------------------------------------------------------------
+
+    def _forward(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        import torch
+
+        module = self.module
+        with torch.inference_mode():
+            points_src = torch.as_tensor(src, dtype=torch.float32, device=self.device)
+            points_ref = torch.as_tensor(ref, dtype=torch.float32, device=self.device)
+            transforms = module(points_src, points_ref)
+            return transforms.detach().double().cpu().numpy()
+
+    def synchronize(self) -> None:
+        """Wait for queued GPU work (for timing)."""
+        import torch
+
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        return self._forward(src[None], ref[None])[0]
+
+    def _register_batch(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        return self._forward(src, ref)
+
+
+def _group_by_shape(pairs: Sequence[tuple[np.ndarray, np.ndarray]], batch_size: int) -> list[list[int]]:
+    """Batches of pair indices whose clouds have equal sizes (so they stack), in input order."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for index, (src, ref) in enumerate(pairs):
+        groups.setdefault((len(src), len(ref)), []).append(index)
+    batches = []
+    for indices in groups.values():
+        batches += [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
+    return sorted(batches, key=lambda b: b[0])
+
+
+def run_batches(
+    registrator: LearnedRegistrator,
+    pairs: Sequence[tuple[Any, Any]],
+    batch_size: int | None = None,
+    progress: bool = True,
+) -> list[PairResult]:
+    """Register every pair with a learned method in batches; one PairResult per pair, in order.
+
+    The counterpart of :func:`baselines.runner.run_pairs` for networks: pairs of equal sizes are
+    stacked into batches of ``batch_size`` (default: the method's ``batch_size``) and run at once;
+    a pair's ``seconds`` is its batch's time divided by the batch size. A batch that raises is
+    retried pair by pair, and a pair that still raises, or whose estimate is not a finite proper
+    rigid transform, gets the identity with ``failed=True`` and a one-line reason. Inputs are
+    checked first (:func:`~baselines.base.check_cloud`: PointCloudError for < 3 points or NaN).
+    """
+    from tqdm.auto import tqdm
+
+    pairs = [(check_cloud(s, f"pair {i} src"), check_cloud(r, f"pair {i} ref")) for i, (s, r) in enumerate(pairs)]
+    batch_size = int(batch_size or registrator.config.batch_size)
+    results: list[PairResult | None] = [None] * len(pairs)
+    if not pairs:
+        return []
+    registrator.setup()
+    with tqdm(total=len(pairs), disable=not progress, desc=registrator.name, unit="pair", dynamic_ncols=True) as bar:
+        for batch in _group_by_shape(pairs, batch_size):
+            src = np.stack([pairs[i][0] for i in batch])
+            ref = np.stack([pairs[i][1] for i in batch])
+            start = time.perf_counter()
+            try:
+                estimates = registrator._register_batch(src, ref)
+                registrator.synchronize()
+                per_pair = (time.perf_counter() - start) / len(batch)
+                outcomes = [(estimates[k], per_pair, None) for k in range(len(batch))]
+            except Exception:  # noqa: BLE001 - retry pair by pair to isolate the culprit
+                outcomes = []
+                for i in batch:
+                    one = time.perf_counter()
+                    try:
+                        estimate = registrator._register(pairs[i][0], pairs[i][1])
+                        registrator.synchronize()
+                        outcomes.append((estimate, time.perf_counter() - one, None))
+                    except Exception as exc:  # noqa: BLE001 - recorded, never raised
+                        lines = str(exc).strip().splitlines()
+                        reason = f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
+                        outcomes.append((None, time.perf_counter() - one, reason))
+            for i, (estimate, seconds, reason) in zip(batch, outcomes):
+                problem = reason or transform_problem(estimate)
+                if reason is None and problem is not None:
+                    problem = f"non-rigid estimate: {problem}"
+                if problem is None:
+                    results[i] = PairResult(i, np.asarray(estimate, dtype=np.float64), seconds)
+                else:
+                    results[i] = PairResult(i, np.eye(4), seconds, True, problem)
+            bar.update(len(batch))
+    return results  # type: ignore[return-value]
+
+
+def _make_class(method: str, target: str) -> type[LearnedRegistrator]:
+    class_name = f"{DISPLAY_NAMES[method]}Registrator"
+    cls = type(class_name, (LearnedRegistrator,), {
+        "name": method,
+        "network_target": target,
+        "__module__": __name__,
+        "__qualname__": class_name,
+        "__doc__": f"{DISPLAY_NAMES[method]} ({target}) from a src.train checkpoint; see LearnedRegistrator.",
+    })
+    return cls
+
+
+for _method, _target in LEARNED_METHODS.items():
+    _cls = _make_class(_method, _target)
+    globals()[_cls.__name__] = _cls
+    __all__.append(_cls.__name__)
+    register_registrator(_method, _cls)
+del _method, _target, _cls

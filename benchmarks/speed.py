@@ -1,0 +1,363 @@
+"""Registration speed in milliseconds per pair, shaped like the paper's speed table (supplementary,
+"Speed comparison for registering a point cloud pair of various sizes"): rows = number of points,
+columns = methods.
+
+    python -m benchmarks.speed                                       # every available method, 512..4096 points
+    python -m benchmarks.speed --methods icp,fgr,symmetric_icp --sizes 1024 --repeats 10
+    python -m benchmarks.speed --methods omnet,dcp --checkpoint omnet=outputs/.../best.ckpt
+    python -m benchmarks.speed --devices cpu --max-seconds 20 --out results/speed
+
+Pairs. For each size N, ``warmup + repeats`` pairs of the asymmetric L-shaped test solid
+(:func:`baselines.testing.l_shape_surface`): the source is one sampling of N points, the reference
+another sampling of N points moved by a random rigid motion of the paper's range (Euler angles in
+[0°, 45°], translation in ±0.5). The first ``warmup`` pairs are not timed; the table shows the
+**median** over the timed pairs (the CSV also has the quartiles).
+
+Methods. Classical methods (ICP, FGR, Symmetric ICP; Go-ICP only when named, as the paper leaves it
+out for its speed) always run on the CPU, in this process, with the threads their libraries use by
+default. Learned networks run one pair per forward pass (batch 1) on each device of ``--devices``
+(default: the CPU, and the GPU when CUDA is available), with the weights of ``--checkpoint
+name=PATH`` or, without one, **freshly initialised weights** of the paper-sized network
+(``conf/model/<name>.yaml``, ``--model-scale 1.0``): timing does not need trained weights; such
+columns are marked † and ``weights=untrained`` in the CSV.
+
+Outputs (``--out``, default ``outputs/speed``): ``speed.csv`` (one row per method × device × size:
+``points, method, method_id, device, weights, ms_per_pair, ms_p25, ms_p75, runs, note``) and
+``speed.md`` (one table per device, the device and the machine in its header; with ``--paper``,
+default on when the paper's CSV is found, the paper's own table below for reference).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from baselines import get_registrator, resolve_registrator
+from baselines.base import Registrator
+from src.errors import ConfigError, UserError
+
+DEFAULT_SIZES = (512, 1024, 2048, 4096)
+CLASSICAL_DEFAULT = ("icp", "fgr", "symmetric_icp")  # Go-ICP only when named (the paper omits it)
+PAPER_SPEED_CSV = "supp_speed_ms.csv"
+# the paper's column order (supplementary speed table)
+PAPER_ORDER = ("icp", "fgr", "goicp", "symmetric_icp", "pointnetlk", "dcp", "prnet", "fmr", "rpmnet", "idam",
+               "deepgmr", "omnet")
+
+
+def _learned() -> dict[str, str]:
+    from baselines.learned.adapter import LEARNED_METHODS
+
+    return LEARNED_METHODS
+
+
+def display_name(method: str) -> str:
+    from benchmarks.grid import display_name as grid_display_name
+
+    return grid_display_name(method)
+
+
+# --- inputs ------------------------------------------------------------------------------------------
+
+
+def make_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A (src, ref) pair of ``n`` points each: two samplings of the L-shaped solid, the reference
+    moved by Euler angles in [0°, 45°] and a translation in ±0.5."""
+    from baselines.testing import euler_transform, l_shape_surface
+
+    rng = np.random.default_rng([seed, n])
+    src = l_shape_surface(n, seed=int(rng.integers(1 << 30)))
+    base = l_shape_surface(n, seed=int(rng.integers(1 << 30)))
+    transform = euler_transform(tuple(rng.uniform(0.0, 45.0, 3)), tuple(rng.uniform(-0.5, 0.5, 3)))
+    ref = base @ transform[:3, :3].T + transform[:3, 3]
+    return src.astype(np.float32).astype(np.float64), ref.astype(np.float32).astype(np.float64)
+
+
+# --- timing ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Timing:
+    method: str
+    label: str
+    device: str
+    weights: str
+    points: int
+    times_ms: list[float]
+    note: str = ""
+
+    def row(self) -> dict[str, Any]:
+        times = self.times_ms
+        q = np.percentile(times, [25, 75]) if times else [np.nan, np.nan]
+        return {
+            "points": self.points, "method": self.label, "method_id": self.method, "device": self.device,
+            "weights": self.weights, "ms_per_pair": statistics.median(times) if times else np.nan,
+            "ms_p25": float(q[0]), "ms_p75": float(q[1]), "runs": len(times), "note": self.note,
+        }
+
+
+def time_method(
+    registrator: Registrator, sizes: list[int], repeats: int, warmup: int, max_seconds: float | None,
+    label: str, device: str, weights: str, progress: bool = True,
+) -> list[Timing]:
+    """Median-ready timings (ms) of ``registrator.register`` at each size; a size that fails is
+    recorded with no times and the reason, and larger sizes are still tried."""
+    from tqdm.auto import tqdm
+
+    registrator.setup()
+    sync = getattr(registrator, "synchronize", lambda: None)
+    out = []
+    for n in sizes:
+        times: list[float] = []
+        note = ""
+        pairs = [make_pair(n, seed) for seed in range(warmup + repeats)]
+        started = time.perf_counter()
+        bar = tqdm(total=warmup + repeats, disable=not progress, desc=f"{label} {device} {n}", unit="pair", leave=False)
+        try:
+            for k, (src, ref) in enumerate(pairs):
+                sync()
+                start = time.perf_counter()
+                registrator.register(src, ref)
+                sync()
+                elapsed = (time.perf_counter() - start) * 1000.0
+                bar.update(1)
+                if k >= warmup:
+                    times.append(elapsed)
+                    if max_seconds is not None and time.perf_counter() - started > max_seconds:
+                        note = f"stopped after {len(times)} timed runs (--max-seconds {max_seconds:g})"
+                        break
+        except Exception as exc:  # noqa: BLE001 - e.g. out of memory: record and go on
+            lines = str(exc).strip().splitlines()
+            note = f"failed: {type(exc).__name__}: {lines[0] if lines else ''}".strip()
+            times = []
+            _free_cuda()
+        finally:
+            bar.close()
+        out.append(Timing(registrator.name, label, device, weights, n, times, note))
+    return out
+
+
+def _free_cuda() -> None:
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def describe_device(device: str) -> str:
+    """``CPU: <model> (<n> usable cores), torch <v>`` or ``GPU: <name>, CUDA <v>, torch <v>``."""
+    import torch
+
+    if device == "cuda":
+        return f"GPU: {torch.cuda.get_device_name(0)}, CUDA {torch.version.cuda}, torch {torch.__version__}"
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover
+        cores = os.cpu_count() or 1
+    return f"CPU: {model} ({cores} usable cores, torch threads {torch.get_num_threads()}), torch {torch.__version__}"
+
+
+# --- tables ------------------------------------------------------------------------------------------
+
+
+def _fmt_ms(value: float) -> str:
+    if value is None or not np.isfinite(value):
+        return "-"
+    return f"{value:.0f}" if value >= 10 else f"{value:.1f}"
+
+
+def _column_order(method: str) -> tuple:
+    """The paper's column order; other methods before OMNet (the last column, as in the paper)."""
+    if method == "omnet":
+        return (2, 0, method)
+    if method in PAPER_ORDER:
+        return (0, PAPER_ORDER.index(method), method)
+    return (1, 0, method)
+
+
+def _fmt_paper(value: float) -> str:
+    return f"{value:.0f}" if value is not None and np.isfinite(value) else "-"
+
+
+def markdown_table(frame: pd.DataFrame, device: str, header: str) -> str:
+    """Rows = number of points, columns = methods (the paper's layout); ms per pair (median)."""
+    part = frame[(frame["device"] == device) | (frame["weights"] == "none")]
+    if part.empty:
+        return ""
+    order = sorted(part["method_id"].unique(), key=_column_order)
+    labels = {}
+    for method in order:
+        rows = part[part["method_id"] == method]
+        label = str(rows["method"].iloc[0])
+        if (rows["weights"] == "untrained").any():
+            label = label.replace(" (untrained)", "") + "†"
+        labels[method] = label
+    lines = [f"**Speed (ms per pair, median) — {header}**", "",
+             "| # points | " + " | ".join(labels[m] for m in order) + " |",
+             "|---:|" + "---:|" * len(order)]
+    for points in sorted(part["points"].unique()):
+        cells = []
+        for method in order:
+            hit = part[(part["points"] == points) & (part["method_id"] == method)]
+            cells.append(_fmt_ms(float(hit["ms_per_pair"].iloc[0])) if len(hit) else "")
+        lines.append(f"| {points} | " + " | ".join(cells) + " |")
+    notes = []
+    if any(label.endswith("†") for label in labels.values()):
+        notes.append("† freshly initialised weights (timing only; no trained checkpoint was given)")
+    if (part["weights"] == "none").any() and device != "cpu":
+        notes.append("classical methods always run on the CPU")
+    runs = part["runs"]
+    if len(runs):
+        span = f"{int(runs.min())}" if runs.min() == runs.max() else f"{int(runs.min())}–{int(runs.max())}"
+        notes.append(f"median over {span} timed runs per cell, after warm-up; one pair per call (batch 1)")
+    for _, row in part[part["note"].astype(bool)].iterrows():
+        notes.append(f"{row['method']} at {row['points']} points: {row['note']}")
+    return "\n".join(lines + [""] + [f"- {n}" for n in notes]) + "\n"
+
+
+def paper_table(paper_dir: Path | None = None) -> str:
+    """The paper's own speed table (from its CSV), for reference."""
+    from benchmarks.paper import default_paper_dir
+
+    path = Path(paper_dir or default_paper_dir()) / PAPER_SPEED_CSV
+    if not path.is_file():
+        return ""
+    paper = pd.read_csv(path)
+    wide = paper.pivot_table(index="points", columns="method", values="ms_per_pair", sort=False)
+    methods = list(dict.fromkeys(paper["method"]))
+    lines = ["**The paper's speed table (ms per pair; learned methods on an RTX 2080Ti GPU, the others on two "
+             "Xeon Gold 6130 CPUs)**", "", "| # points | " + " | ".join(methods) + " |", "|---:|" + "---:|" * len(methods)]
+    for points in wide.index:
+        lines.append(f"| {points} | " + " | ".join(_fmt_paper(wide.loc[points, m]) if m in wide.columns else "-" for m in methods) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# --- command line -------------------------------------------------------------------------------------
+
+
+def _parse_checkpoints(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--checkpoint takes NAME=PATH (e.g. omnet=outputs/.../best.ckpt), got {item!r}")
+        name, path = item.split("=", 1)
+        out[resolve_registrator(name.strip()).name] = path.strip()
+    return out
+
+
+def default_methods() -> list[str]:
+    return [*CLASSICAL_DEFAULT, *_learned()]
+
+
+def build(method: str, device: str, checkpoints: dict[str, str], model_scale: float) -> tuple[Registrator, str]:
+    """The registrator and its weights label (``trained`` / ``untrained`` / ``none``)."""
+    if method not in _learned():
+        return get_registrator(method), "none"
+    if method in checkpoints:
+        return get_registrator(method, checkpoint=checkpoints[method], device=device), "trained"
+    return get_registrator(method, fresh_weights=True, model_scale=model_scale, device=device), "untrained"
+
+
+def run(args: argparse.Namespace) -> pd.DataFrame:
+    import torch
+
+    import baselines.learned.adapter  # noqa: F401 - registers the learned names
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    methods = [resolve_registrator(m.strip()).name for m in args.methods.split(",") if m.strip()] if args.methods else default_methods()
+    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    if not sizes or min(sizes) < 3:
+        raise ConfigError(f"--sizes must list point counts >= 3, got {args.sizes!r}")
+    if args.repeats < 1 or args.warmup < 0:
+        raise ConfigError("--repeats must be >= 1 and --warmup >= 0")
+    devices = [d.strip() for d in (args.devices or ("cpu,cuda" if torch.cuda.is_available() else "cpu")).split(",") if d.strip()]
+    for device in devices:
+        if device not in ("cpu", "cuda"):
+            raise ConfigError(f"--devices takes cpu and/or cuda, got {device!r}")
+        if device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("--devices cuda: CUDA is not available on this machine")
+    checkpoints = _parse_checkpoints(args.checkpoint or [])
+    timings: list[Timing] = []
+    for method in methods:
+        learned = method in _learned()
+        for device in devices if learned else ["cpu"]:
+            try:
+                registrator, weights = build(method, device, checkpoints, args.model_scale)
+            except ConfigError as err:
+                if args.methods:  # named explicitly: a user error
+                    raise
+                print(f"note: skipping {method}: {err}", file=sys.stderr)
+                break
+            label = getattr(registrator, "label", display_name(method))
+            timings += time_method(registrator, sizes, args.repeats, args.warmup, args.max_seconds, label, device,
+                                   weights, progress=not args.no_progress)
+            del registrator
+            _free_cuda()
+    frame = pd.DataFrame([t.row() for t in timings])
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out / "speed.csv", index=False)
+    parts = [f"# Registration speed\n\nGenerated by `python -m benchmarks.speed` on {time.strftime('%Y-%m-%d %H:%M')}.\n"]
+    for device in devices:
+        table = markdown_table(frame, device, describe_device(device) + ("" if device == "cpu" else "; classical methods on the " + describe_device("cpu")))
+        if table:
+            parts.append(table)
+    if args.paper:
+        reference = paper_table(args.paper_dir)
+        if reference:
+            parts.append(reference)
+    markdown = "\n".join(parts)
+    (out / "speed.md").write_text(markdown)
+    print(markdown)
+    print(f"wrote {out / 'speed.csv'}, {out / 'speed.md'}")
+    return frame
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--methods", default=None,
+                        help="comma-separated method names (default: icp, fgr, symmetric_icp and every learned network)")
+    parser.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)), help="comma-separated point counts (default: 512,1024,2048,4096)")
+    parser.add_argument("--repeats", type=int, default=10, help="timed pairs per cell (default 10)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed pairs first (default 2)")
+    parser.add_argument("--devices", default=None, help="cpu and/or cuda for the learned methods (default: cpu, plus cuda if available)")
+    parser.add_argument("--checkpoint", action="append", metavar="NAME=PATH", help="trained weights of a learned method (repeatable)")
+    parser.add_argument("--model-scale", type=float, default=1.0, help="width of untrained networks (default 1.0 = the paper's)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--max-seconds", type=float, default=None, help="stop timing a cell after this many seconds (>= 1 timed run)")
+    parser.add_argument("--out", default="outputs/speed", help="output folder (default outputs/speed)")
+    parser.add_argument("--paper", action=argparse.BooleanOptionalAction, default=True, help="append the paper's table (default on)")
+    parser.add_argument("--paper-dir", type=Path, default=None, help="folder of the paper's CSVs")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+    try:
+        run(args)
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+"""benchmarks.speed: the paper-shaped speed table for a toy method (and an untrained tiny network)."""
+
+import pandas as pd
+
+import benchmarks.speed as speed
+from baselines import register_registrator
+from baselines.testing import ToyRegistrator
+
+register_registrator("toy", ToyRegistrator)
+
+
+def test_speed_table_for_a_toy_method_at_two_sizes(tmp_path, capsys):
+    code = speed.main(["--methods", "toy", "--sizes", "32,64", "--repeats", "3", "--warmup", "1", "--devices", "cpu",
+                       "--out", str(tmp_path), "--no-progress", "--no-paper"])
+    assert code == 0
+    frame = pd.read_csv(tmp_path / "speed.csv")
+    assert list(frame["points"]) == [32, 64] and set(frame["method"]) == {"toy"} and set(frame["device"]) == {"cpu"}
+    assert (frame["runs"] == 3).all() and (frame["ms_per_pair"] > 0).all() and (frame["weights"] == "none").all()
+    markdown = (tmp_path / "speed.md").read_text()
+    assert "| # points | toy |" in markdown and "| 32 |" in markdown and "| 64 |" in markdown
+    assert "CPU:" in markdown and "median over 3" in markdown
+    assert "| # points | toy |" in capsys.readouterr().out
+
+
+def test_untrained_network_is_labelled(tmp_path):
+    code = speed.main(["--methods", "toy,omnet", "--sizes", "32", "--repeats", "1", "--warmup", "0", "--devices", "cpu",
+                       "--model-scale", "0.0625", "--out", str(tmp_path), "--no-progress", "--no-paper"])
+    assert code == 0
+    frame = pd.read_csv(tmp_path / "speed.csv").set_index("method_id")
+    assert frame.loc["omnet", "weights"] == "untrained" and frame.loc["omnet", "method"] == "OMNet (untrained)"
+    markdown = (tmp_path / "speed.md").read_text()
+    assert "| # points | toy | OMNet† |" in markdown and "† freshly initialised weights" in markdown
+
+
+def test_speed_errors_are_one_line(tmp_path, capsys):
+    assert speed.main(["--methods", "nosuch", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip().startswith("error: unknown registration method 'nosuch'")
+    assert speed.main(["--methods", "omnet", "--checkpoint", f"omnet={tmp_path}/none.ckpt", "--devices", "cpu",
+                       "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "does not exist" in capsys.readouterr().err
