@@ -84,10 +84,6 @@ _LOADER_KEYS = ("batch_size", "eval_batch_size", "num_workers", "pin_memory", "p
 ConfigStore.instance().store(name="benchmark_grid", node={"defaults": ["_self_", "benchmark/default"]})
 
 
-def _import_learned() -> None:
-    """Register the learned methods' names (the adapter module registers them on import)."""
-    import baselines.learned.adapter  # noqa: F401
-
 
 def display_name(method: str) -> str:
     from baselines.learned.adapter import DISPLAY_NAMES
@@ -517,7 +513,6 @@ def _names(values: Any, what: str, allowed: Sequence[str] | None = None) -> list
 def plan(cfg: DictConfig) -> tuple[list[Cell], list[str]]:
     """Every cell of the grid (validated: methods, checkpoints, experiments, data), and notes on the
     cells that are skipped."""
-    _import_learned()
     bench = cfg.benchmark
     methods = _names(bench.methods, "methods")
     for method in methods:

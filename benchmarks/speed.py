@@ -281,8 +281,6 @@ def build(method: str, device: str, checkpoints: dict[str, str], model_scale: fl
 def run(args: argparse.Namespace) -> pd.DataFrame:
     import torch
 
-    import baselines.learned.adapter  # noqa: F401 - registers the learned names
-
     if args.threads:
         torch.set_num_threads(args.threads)
     methods = [resolve_registrator(m.strip()).name for m in args.methods.split(",") if m.strip()] if args.methods else default_methods()

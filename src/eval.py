@@ -18,11 +18,10 @@ from src.models.module import RegistrationModule
 from src.runtime import (
     build_trainer,
     exit_on_user_error,
-    format_metrics,
     global_rank,
     record_failures,
+    report_test_metrics,
     save_resolved_config,
-    write_metrics,
 )
 
 register_resolvers()
@@ -57,10 +56,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     trainer = build_trainer(cfg, with_checkpoints=False)
     trainer.test(module, datamodule=datamodule)
     metrics = module.test_results
-    if trainer.is_global_zero:  # under DDP every rank holds the same (synchronised) metrics
-        write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": str(cfg.ckpt_path), "sampling": cfg.sampling,
-                                            "partial": cfg.partial, "dataset": cfg.data.dataset})
-        print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+    report_test_metrics(trainer, cfg, metrics, str(cfg.ckpt_path))
     return metrics
 
 

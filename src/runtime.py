@@ -316,6 +316,17 @@ def patch_ddp_subprocess_launcher() -> None:
     pytorch_launcher._hydra_subprocess_cmd = ddp_job_subprocess_cmd
 
 
+def report_test_metrics(trainer: L.Trainer, cfg: DictConfig, metrics: dict[str, float], checkpoint: str) -> None:
+    """On rank 0 (under DDP every rank holds the same synchronised metrics): write metrics.json/.csv
+    into the run dir and print the table."""
+    if not trainer.is_global_zero:
+        return
+    context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
+               "dataset": cfg.data.dataset}
+    write_metrics(metrics, Path(cfg.output_dir), context)
+    print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+
+
 def format_metrics(metrics: dict[str, float]) -> str:
     """The paper's metrics as a two-column text table."""
     width = max(len(k) for k in metrics)

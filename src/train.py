@@ -23,11 +23,10 @@ from src.errors import CheckpointError
 from src.runtime import (
     build_trainer,
     exit_on_user_error,
-    format_metrics,
     global_rank,
     record_failures,
+    report_test_metrics,
     save_resolved_config,
-    write_metrics,
 )
 
 register_resolvers()
@@ -50,10 +49,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
     metrics = module.test_results
-    if trainer.is_global_zero:  # under DDP every rank holds the same (synchronised) metrics
-        write_metrics(metrics, output_dir, {"task": cfg.task_name, "checkpoint": best, "sampling": cfg.sampling,
-                                            "partial": cfg.partial, "dataset": cfg.data.dataset})
-        print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+    report_test_metrics(trainer, cfg, metrics, best)
     return metrics
 
 

@@ -1,6 +1,5 @@
 """exp=real_airplane on the first shapes of the shared real ModelNet40 airplane zip."""
 
-import os
 from pathlib import Path
 
 import hydra
