@@ -4,25 +4,9 @@ import pytest
 import torch
 
 from baselines.learned.deepgmr import DeepGMR
-from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
-
-
-def _batch(b=4, n=64, seed=0):
-    """Noisy, partially overlapping halves of a random anisotropic blob, and their transform."""
-    g = torch.Generator().manual_seed(seed)
-    base = torch.randn(b, 2 * n, 3, generator=g) * torch.tensor([0.6, 0.4, 0.2]) + torch.tensor([0.2, 0.0, 0.0])
-    ref = base[:, :n] + 0.02 * torch.randn(b, n, 3, generator=g)
-    src = base[:, n // 2:n // 2 + n] + 0.02 * torch.randn(b, n, 3, generator=g)
-    gt = se3_from_rt(euler_to_matrix(torch.rand(b, 3, generator=g) * 0.8, "zyx"), torch.rand(b, 3, generator=g) - 0.5)
-    return se3_apply(se3_inverse(gt), src), ref, gt
-
-
-def _assert_rigid(transform):
-    rot = transform[:, :3, :3]
-    assert torch.isfinite(transform).all()
-    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand_as(rot), atol=1e-5, rtol=0)
-    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(len(rot)), atol=1e-5, rtol=0)
-    torch.testing.assert_close(transform[:, 3], torch.tensor([0.0, 0, 0, 1]).expand(len(rot), 4))
+from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
+from registration_helpers import assert_rigid as _assert_rigid
+from registration_helpers import partial_pair_batch as _batch
 
 
 @pytest.mark.parametrize("kwargs", [dict(), dict(use_rri=False), dict(exact_procrustes=True)])

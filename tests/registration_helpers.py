@@ -1,0 +1,38 @@
+"""Small batches and checks shared by the network tests."""
+
+import torch
+
+from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
+
+
+def _random_transforms(b: int, g: torch.Generator) -> torch.Tensor:
+    rot = euler_to_matrix(torch.rand(b, 3, generator=g) * 0.8, "zyx")
+    return se3_from_rt(rot, torch.rand(b, 3, generator=g) - 0.5)
+
+
+def exact_pair_batch(b: int = 3, n: int = 64, seed: int = 0):
+    """Random anisotropic (asymmetric) clouds with ref = gt(src) exactly: (src, ref, gt)."""
+    g = torch.Generator().manual_seed(seed)
+    ref = torch.randn(b, n, 3, generator=g) * torch.tensor([0.6, 0.4, 0.2])
+    gt = _random_transforms(b, g)
+    return se3_apply(se3_inverse(gt), ref), ref, gt
+
+
+def partial_pair_batch(b: int = 4, n: int = 64, seed: int = 0):
+    """Noisy, partially overlapping halves of a random anisotropic blob: (src, ref, gt)."""
+    g = torch.Generator().manual_seed(seed)
+    base = torch.randn(b, 2 * n, 3, generator=g) * torch.tensor([0.6, 0.4, 0.2]) + torch.tensor([0.2, 0.0, 0.0])
+    ref = base[:, :n] + 0.02 * torch.randn(b, n, 3, generator=g)
+    src = base[:, n // 2 : n // 2 + n] + 0.02 * torch.randn(b, n, 3, generator=g)
+    gt = _random_transforms(b, g)
+    return se3_apply(se3_inverse(gt), src), ref, gt
+
+
+def assert_rigid(transform: torch.Tensor) -> None:
+    """(B,4,4) finite, orthonormal rotation with det +1, last row (0,0,0,1)."""
+    b = transform.shape[0]
+    assert transform.shape == (b, 4, 4) and torch.isfinite(transform).all()
+    rot = transform[:, :3, :3]
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3, dtype=rot.dtype).expand(b, 3, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(b, dtype=rot.dtype), atol=1e-5, rtol=0)
+    torch.testing.assert_close(transform[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=rot.dtype).expand(b, 4))
