@@ -1,0 +1,90 @@
+"""IDAM: point elimination, iterative rigid estimates, losses, a few steps lower the loss, config and checkpoint."""
+
+from pathlib import Path
+
+import lightning
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from baselines.learned.idam import IDAM
+from src.config import register_resolvers
+from src.models.module import RegistrationModule
+from registration_helpers import assert_rigid as _assert_rigid
+from registration_helpers import exact_pair_batch as _batch
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+register_resolvers()
+
+
+def test_training_forward_keeps_a_sixth_in_corresponding_order_and_gives_rigid_transforms():
+    torch.manual_seed(0)
+    model = IDAM(width=0.5)
+    src, ref, gt = _batch(n=96)
+    out = model(src, ref, gt)
+    assert len(out["transforms"]) == 3
+    for transform in out["transforms"]:
+        _assert_rigid(transform)
+    assert out["similarities"][0].shape == (3, 16, 16) and out["weight_logits"][0].shape == (3, 16)
+    assert out["targets"].tolist() == [list(range(16))] * 3  # the i-th source point matches the i-th reference point
+    assert out["match_labels"][:, :8].sum() > 0  # the first half sampled among true matches
+    losses = model.loss(out, gt)
+    assert set(losses) == {"loss", "loss/match", "loss/weight", "loss/negative_entropy"}
+    assert all(torch.isfinite(v) for v in losses.values())
+    with pytest.raises(ValueError):
+        model(src, ref)  # training needs the ground truth
+
+
+def test_evaluation_selects_by_significance_with_or_without_ground_truth():
+    torch.manual_seed(0)
+    model = IDAM(width=0.5).eval()
+    src, ref, gt = _batch(n=96)
+    with torch.no_grad():
+        plain = model(src, ref)
+        with_gt = model(src, ref, gt)
+    _assert_rigid(plain["transforms"][-1])
+    torch.testing.assert_close(plain["transforms"][-1], with_gt["transforms"][-1])
+    assert torch.isfinite(model.loss(with_gt, gt)["loss"])
+    with pytest.raises(ValueError):
+        model.loss(plain, gt)
+
+
+def test_a_few_training_steps_lower_the_loss():
+    torch.manual_seed(0)
+    model = IDAM(width=0.5)
+    src, ref, gt = _batch(b=4, n=96)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+
+    def loss_at(seed):  # the training point selection drawn from a fixed seed
+        torch.manual_seed(seed)
+        return model.loss(model(src, ref, gt), gt)["loss"]
+
+    with torch.no_grad():
+        before = sum(loss_at(s).item() for s in range(3))
+    for step in range(10):
+        loss = loss_at(100 + step)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        after = sum(loss_at(s).item() for s in range(3))
+    assert after < before
+
+
+def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("config", overrides=["model=idam", "data=synthetic"]).model
+        small = compose("config", overrides=["model=idam", "data=synthetic", "model_scale=0.5"]).model
+    module = instantiate(cfg)
+    assert isinstance(module, RegistrationModule) and module.network_target == "baselines.learned.idam.IDAM"
+    assert module.hparams["lr"] == 1e-4 and module.hparams["weight_decay"] == 1e-3
+    module.configure_optimizers()
+    module = instantiate(small).eval()
+    path = tmp_path / "idam.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": lightning.__version__}, path)
+    loaded = RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+    src, ref, _ = _batch(b=2, n=96)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(src, ref), module(src, ref))

@@ -1,0 +1,102 @@
+"""RPMNet: normals from the received points, 2 training / 5 test iterations, loss, training, config and checkpoint."""
+
+from pathlib import Path
+
+import lightning
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from baselines.learned.rpmnet import RPMNet
+from src.config import register_resolvers
+from src.models.module import RegistrationModule
+from registration_helpers import assert_rigid as _assert_rigid
+from registration_helpers import exact_pair_batch as _batch
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+register_resolvers()
+
+
+def _small(**kwargs):
+    return RPMNet(width=0.125, num_neighbors=16, normals_k=10, **kwargs)
+
+
+def test_two_iterations_while_training_five_at_evaluation_all_rigid():
+    torch.manual_seed(0)
+    model = _small()
+    src, ref, gt = _batch()
+    out = model(src, ref, gt)
+    assert len(out["transforms"]) == 2 and len(out["row_sums"]) == 2
+    for transform in out["transforms"]:
+        _assert_rigid(transform)
+    assert (out["row_sums"][0] <= 1 + 1e-5).all() and (out["col_sums"][0] <= 1 + 1e-5).all()
+    assert (out["betas"][0] > 0).all() and (out["alphas"][0] > 0).all()
+    losses = model.loss(out, gt)
+    assert set(losses) == {"loss", "loss/points", "loss/inlier"}
+    torch.testing.assert_close(losses["loss"], losses["loss/points"] + losses["loss/inlier"])
+    model.eval()
+    with torch.no_grad():
+        out = model(src, ref, gt)
+    assert len(out["transforms"]) == 5
+    _assert_rigid(out["transforms"][-1])
+
+
+def test_loss_is_zero_pointwise_for_the_ground_truth_and_discounts_early_iterations():
+    model = _small()
+    src, _, gt = _batch()
+    ones = torch.ones(3, 64)
+    perfect = {"transforms": [gt, gt], "row_sums": [ones, ones], "col_sums": [ones, ones], "points_src": src}
+    assert model.loss(perfect, gt)["loss"] < 1e-6
+    off = torch.eye(4).expand(3, 4, 4)
+    first_bad = model.loss({**perfect, "transforms": [off, gt]}, gt)["loss/points"]
+    last_bad = model.loss({**perfect, "transforms": [gt, off]}, gt)["loss/points"]
+    torch.testing.assert_close(first_bad, 0.5 * last_bad)
+    with pytest.raises(ValueError):
+        RPMNet(loss_type="huber")
+
+
+def test_the_network_needs_no_normals_and_is_invariant_to_point_order():
+    torch.manual_seed(0)
+    model = RPMNet(width=0.125, num_neighbors=64, normals_k=10).eval()  # every ball neighbour kept
+    src, ref, _ = _batch(b=2)
+    perm = torch.randperm(64)
+    with torch.no_grad():
+        a = model(src, ref)["transforms"][-1]
+        b = model(src[:, perm], ref[:, torch.randperm(64)])["transforms"][-1]
+    torch.testing.assert_close(a, b, atol=1e-4, rtol=0)
+
+
+def test_a_few_training_steps_lower_the_loss():
+    torch.manual_seed(0)
+    model = _small()
+    src, ref, gt = _batch(b=4)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(6):
+        loss = model.loss(model(src, ref, gt), gt)["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0]
+
+
+def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("config", overrides=["model=rpmnet", "data=synthetic", "partial=rpmnet"]).model
+        small = compose("config", overrides=["model=rpmnet", "data=synthetic", "model_scale=0.125",
+                                             "model.network.num_neighbors=16"]).model
+    module = instantiate(cfg)
+    assert isinstance(module, RegistrationModule) and module.network_target == "baselines.learned.rpmnet.RPMNet"
+    assert module.hparams["lr"] == 1e-4 and module.hparams["weight_decay"] == 0 and module.hparams["euler_seq"] == "xyz"
+    assert module.network.feat_extractor.features == ("xyz", "dxyz", "ppf")
+    module.configure_optimizers()
+    module = instantiate(small).eval()
+    path = tmp_path / "rpmnet.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": lightning.__version__}, path)
+    loaded = RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+    src, ref, _ = _batch(b=2)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(src, ref), module(src, ref))
