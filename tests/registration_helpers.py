@@ -36,3 +36,17 @@ def assert_rigid(transform: torch.Tensor) -> None:
     torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3, dtype=rot.dtype).expand(b, 3, 3), atol=1e-5, rtol=0)
     torch.testing.assert_close(torch.linalg.det(rot), torch.ones(b, dtype=rot.dtype), atol=1e-5, rtol=0)
     torch.testing.assert_close(transform[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=rot.dtype).expand(b, 4))
+
+
+def train_losses(model: torch.nn.Module, batch, steps: int, lr: float = 1e-3) -> list[float]:
+    """Losses of ``steps`` Adam steps of ``model`` on one (src, ref, gt) batch."""
+    src, ref, gt = batch
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    losses = []
+    for _ in range(steps):
+        loss = model.loss(model(src, ref, gt), gt)["loss"]
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    return losses

@@ -11,6 +11,7 @@ from baselines.learned.dcp import DCP
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
 from registration_helpers import assert_rigid as _assert_rigid
+from registration_helpers import train_losses
 from registration_helpers import exact_pair_batch as _batch
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
@@ -40,14 +41,7 @@ def test_a_few_training_steps_lower_the_loss():
     torch.manual_seed(0)
     model = DCP(width=0.125)
     src, ref, gt = _batch(b=4)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(8):
-        loss = model.loss(model(src, ref, gt), gt)["loss"]
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
+    losses = train_losses(model, (src, ref, gt), steps=8)
     assert losses[-1] < losses[0]
 
 
