@@ -50,3 +50,15 @@ def train_losses(model: torch.nn.Module, batch, steps: int, lr: float = 1e-3) ->
         optimizer.step()
         losses.append(loss.item())
     return losses
+
+
+def reload_via_checkpoint(module, path):
+    """Save ``module`` as a Lightning checkpoint at ``path`` and load it back with
+    ``RegistrationModule.load_from_checkpoint`` (which rebuilds the network from its config)."""
+    import lightning
+
+    from src.models.module import RegistrationModule
+
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": lightning.__version__}, path)
+    return RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()

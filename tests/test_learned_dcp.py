@@ -2,7 +2,6 @@
 
 from pathlib import Path
 
-import lightning
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
@@ -10,6 +9,7 @@ from hydra.utils import instantiate
 from baselines.learned.dcp import DCP
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
+from registration_helpers import reload_via_checkpoint
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import train_losses
 from registration_helpers import exact_pair_batch as _batch
@@ -55,10 +55,7 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
     assert sum(p.numel() for p in module.network.parameters()) > 5_000_000
     module.configure_optimizers()
     module = instantiate(small).eval()
-    path = tmp_path / "dcp.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "pytorch-lightning_version": lightning.__version__}, path)
-    loaded = RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+    loaded = reload_via_checkpoint(module, tmp_path / "dcp.ckpt")
     src, ref, _ = _batch(b=2)
     with torch.no_grad():
         torch.testing.assert_close(loaded(src, ref), module(src, ref))

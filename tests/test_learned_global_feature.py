@@ -3,7 +3,6 @@ RRI), and the Hydra configs + checkpoints of PointNetLK, FMR and DeepGMR."""
 
 from pathlib import Path
 
-import lightning
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -29,6 +28,7 @@ from baselines.learned.common.procrustes import weighted_procrustes
 from src.config import register_resolvers
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
 from src.models.module import RegistrationModule
+from registration_helpers import reload_via_checkpoint
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_resolvers()
@@ -219,10 +219,7 @@ def test_config_composes_and_instantiates_the_module(name):
 def test_load_from_checkpoint_rebuilds_the_network(name, tmp_path):
     cfg = _model_cfg(name, "model_scale=0.125")
     module = instantiate(cfg).eval()
-    path = tmp_path / "model.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "pytorch-lightning_version": lightning.__version__}, path)
-    loaded = RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+    loaded = reload_via_checkpoint(module, tmp_path / "model.ckpt")
     assert loaded.network_target == NETWORKS[name]
     src, ref, _ = _pair(b=2, n=64)
     with torch.no_grad():

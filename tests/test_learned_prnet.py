@@ -2,7 +2,6 @@
 
 from pathlib import Path
 
-import lightning
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -11,6 +10,7 @@ from hydra.utils import instantiate
 from baselines.learned.prnet import PRNet
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
+from registration_helpers import reload_via_checkpoint
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import exact_pair_batch as _batch
 
@@ -88,10 +88,7 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
     assert module.hparams["lr"] == 1e-3 and module.hparams["weight_decay"] == 1e-4 and module.network.num_iters == 3
     module.configure_optimizers()
     module = instantiate(small).eval()
-    path = tmp_path / "prnet.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "pytorch-lightning_version": lightning.__version__}, path)
-    loaded = RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+    loaded = reload_via_checkpoint(module, tmp_path / "prnet.ckpt")
     src, ref, _ = _batch(b=2)
     with torch.no_grad():
         torch.manual_seed(5)
