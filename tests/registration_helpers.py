@@ -62,3 +62,25 @@ def reload_via_checkpoint(module, path):
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                 "pytorch-lightning_version": lightning.__version__}, path)
     return RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+
+
+def seeded_losses_before_after(model: torch.nn.Module, batch, steps: int, lr: float) -> tuple[float, float]:
+    """For stochastic networks: the loss summed over 3 fixed seeds before and after ``steps`` Adam
+    steps (each drawn with its own seed), so the comparison does not depend on the random draws."""
+    src, ref, gt = batch
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+
+    def loss_at(seed: int) -> torch.Tensor:
+        torch.manual_seed(seed)
+        return model.loss(model(src, ref, gt), gt)["loss"]
+
+    with torch.no_grad():
+        before = sum(loss_at(s).item() for s in range(3))
+    for step in range(steps):
+        loss = loss_at(100 + step)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        after = sum(loss_at(s).item() for s in range(3))
+    return before, after
