@@ -46,13 +46,16 @@ def exit_on_user_error(main: Callable[[DictConfig], Any]) -> Callable[[DictConfi
     return wrapper
 
 
+TRAINING_ONLY_CALLBACKS = ("checkpoint", "periodic_checkpoint", "rng_state")
+
+
 def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
     """Trainer with the configured loggers and callbacks (checkpointing only when training)."""
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [
         hydra.utils.instantiate(c)
         for name, c in (cfg.get("callbacks") or {}).items()
-        if with_checkpoints or name != "checkpoint"
+        if with_checkpoints or name not in TRAINING_ONLY_CALLBACKS
     ]
     patch_ddp_subprocess_launcher()
     return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks)

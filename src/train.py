@@ -12,6 +12,7 @@ with the sweep in a multirun and re-raises in a single run (``record`` / ``raise
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import hydra
@@ -30,6 +31,8 @@ from src.runtime import (
 )
 
 register_resolvers()
+# The datamodule, not the loader, carries the mid-epoch data position (RegistrationDataModule.state_dict).
+warnings.filterwarnings("ignore", message="You're resuming from a checkpoint that ended before the epoch ended")
 
 
 def train(cfg: DictConfig) -> dict[str, float]:

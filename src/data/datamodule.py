@@ -13,7 +13,13 @@ from torch.utils.data import DataLoader
 
 from src.data.cache import Cache, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
-from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
+from src.data.dataset import (
+    EVAL_STREAM,
+    TRAIN_STREAM,
+    EpochSampler,
+    EvalShardSampler,
+    PairDataset,
+)
 from src.data.prepare import ensure_cache
 from src.data.transforms import build_pair_transforms
 from src.errors import ConfigError
@@ -96,6 +102,8 @@ class RegistrationDataModule(L.LightningDataModule):
         self.seed, self.build = seed, dict(build or {})
         self.datasets: dict[str, PairDataset] = {}
         self.cache: Cache | None = None
+        self._train_sampler: EpochSampler | None = None
+        self._resume_position: dict[str, int] | None = None
 
     def setup(self, stage: str | None = None) -> None:
         if self.cache is None:
@@ -110,29 +118,59 @@ class RegistrationDataModule(L.LightningDataModule):
             stream = TRAIN_STREAM if name == "train" else EVAL_STREAM
             self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream)
 
-    def _loader(self, name: str, batch_size: int, sampler=None) -> DataLoader:
-        if name not in self.splits:
-            raise ConfigError(f"data.splits has no {name!r} entry for this experiment")
-        return DataLoader(
-            self.datasets[name],
-            batch_size=batch_size,
-            sampler=sampler,
-            num_workers=self.num_workers,
-            pin_memory=self.pin_memory,
-            persistent_workers=self.persistent_workers,
-            drop_last=name == "train",
-        )
+    def _loader_options(self) -> dict[str, Any]:
+        return {"num_workers": self.num_workers, "pin_memory": self.pin_memory,
+                "persistent_workers": self.persistent_workers}
 
     def train_dataloader(self) -> DataLoader:
-        sampler = EpochSampler(len(self.datasets["train"]), self.seed)
-        return self._loader("train", self.batch_size, sampler)
+        self._require("train")
+        self._train_sampler = EpochSampler(len(self.datasets["train"]), self.seed)
+        if self._resume_position is not None:
+            self._train_sampler.resume_at(self._resume_position["epoch"],
+                                          self._resume_position["batches_done"] * self.batch_size)
+            self._resume_position = None
+        # its own generator: creating an iterator draws a worker seed, which must not consume the
+        # global RNG (a resumed run creates one mid-epoch, where the uninterrupted run does not)
+        return DataLoader(self.datasets["train"], batch_size=self.batch_size, sampler=self._train_sampler,
+                          drop_last=True, generator=torch.Generator(), **self._loader_options())
+
+    def state_dict(self) -> dict[str, int]:
+        """Where training is in the data (epoch, batches done), saved in every Lightning checkpoint and
+        restored by :meth:`load_state_dict` before the resumed fit builds its loader, so a run resumed
+        from a mid-epoch checkpoint sees exactly the batches the uninterrupted run would have. Counts
+        are the trainer's (Lightning prefetches a batch ahead, so the loader cannot know what was
+        trained on); an epoch the trainer has closed (ended, or stopped by max_steps/max_time) resumes
+        at the next one, as Lightning's loops do."""
+        if self._train_sampler is None or self.trainer is None:
+            return {}
+        fit_loop = self.trainer.fit_loop
+        epoch, done = self._train_sampler.epoch, fit_loop.epoch_loop.batch_progress.current.processed
+        epoch_closed = fit_loop.epoch_progress.current.completed > epoch
+        if epoch_closed or done >= len(self._train_sampler) // self.batch_size:
+            epoch, done = epoch + 1, 0
+        return {"epoch": epoch, "batches_done": done, "batch_size": self.batch_size}
+
+    def load_state_dict(self, state_dict: dict[str, int]) -> None:
+        if not state_dict:
+            return
+        if state_dict["batch_size"] != self.batch_size:
+            raise ConfigError(
+                f"the checkpoint was trained with data.batch_size={state_dict['batch_size']}, this run uses "
+                f"{self.batch_size}: resume with the same batch size"
+            )
+        self._resume_position = dict(state_dict)
+
+    def _require(self, name: str) -> None:
+        if name not in self.splits:
+            raise ConfigError(f"data.splits has no {name!r} entry for this experiment")
 
     def _eval_loader(self, name: str) -> DataLoader:
         """Sequential fixed set; under DDP each rank gets whole batches, none padded or repeated
         (:class:`EvalShardSampler`; ``trainer=ddp`` sets ``use_distributed_sampler: false``)."""
-        if name not in self.splits:
-            raise ConfigError(f"data.splits has no {name!r} entry for this experiment")
-        return self._loader(name, self.eval_batch_size, EvalShardSampler(len(self.datasets[name]), self.eval_batch_size))
+        self._require(name)
+        sampler = EvalShardSampler(len(self.datasets[name]), self.eval_batch_size)
+        return DataLoader(self.datasets[name], batch_size=self.eval_batch_size, sampler=sampler,
+                          **self._loader_options())
 
     def val_dataloader(self) -> DataLoader:
         return self._eval_loader("val")

@@ -69,38 +69,44 @@ class PairDataset(Dataset):
         }
 
 
+def _world_and_rank() -> tuple[int, int]:
+    initialized = dist.is_available() and dist.is_initialized()
+    return (dist.get_world_size(), dist.get_rank()) if initialized else (1, 0)
+
+
 class EpochSampler(Sampler[int]):
     """Shuffled virtual indices ``epoch * n + perm[i]`` (see :class:`PairDataset`), split across DDP ranks.
 
-    The permutation depends only on (seed, epoch), so training order and pairs are reproducible and
-    a resumed run continues with the same sequence.
+    The permutation depends only on (seed, epoch), so training order and pairs are reproducible.
+    :meth:`resume_at` makes the next pass start mid-epoch, where a checkpoint left off.
     """
 
     def __init__(self, size: int, seed: int, shuffle: bool = True) -> None:
         self.size, self.seed, self.shuffle, self.epoch = size, seed, shuffle, 0
-        initialized = dist.is_available() and dist.is_initialized()
-        self.world = dist.get_world_size() if initialized else 1
-        self.rank = dist.get_rank() if initialized else 0
+        self.world, self.rank = _world_and_rank()
         self.per_rank = math.ceil(size / self.world)
+        self._skip = 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
+
+    def resume_at(self, epoch: int, samples_done: int) -> None:
+        """The next iteration is epoch ``epoch`` without its first ``samples_done`` samples (this rank's)."""
+        if not 0 <= samples_done <= self.per_rank:
+            raise ValueError(f"cannot resume {samples_done} samples into an epoch of {self.per_rank}")
+        self.epoch, self._skip = epoch, samples_done
 
     def __len__(self) -> int:
         return self.per_rank
 
     def __iter__(self) -> Iterator[int]:
+        skip, self._skip = self._skip, 0  # a resume position applies to one pass only
         order = np.arange(self.size)
         if self.shuffle:
             order = np.random.default_rng([self.seed, self.epoch]).permutation(self.size)
         order = np.resize(order, self.per_rank * self.world)  # pad by wrapping so ranks get equal counts
-        for i in order[self.rank :: self.world]:
+        for i in order[self.rank :: self.world][skip:]:
             yield int(self.epoch * self.size + i)
-
-
-def _world_and_rank() -> tuple[int, int]:
-    initialized = dist.is_available() and dist.is_initialized()
-    return (dist.get_world_size(), dist.get_rank()) if initialized else (1, 0)
 
 
 class EvalShardSampler(Sampler[int]):
