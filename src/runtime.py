@@ -319,13 +319,15 @@ def patch_ddp_subprocess_launcher() -> None:
     pytorch_launcher._hydra_subprocess_cmd = ddp_job_subprocess_cmd
 
 
-def report_test_metrics(trainer: L.Trainer, cfg: DictConfig, metrics: dict[str, float], checkpoint: str) -> None:
+def report_test_metrics(
+    trainer: L.Trainer, cfg: DictConfig, metrics: dict[str, float], checkpoint: str, **extra: Any
+) -> None:
     """On rank 0 (under DDP every rank holds the same synchronised metrics): write metrics.json/.csv
-    into the run dir and print the table."""
+    into the run dir (``extra`` joins the context, e.g. training time) and print the table."""
     if not trainer.is_global_zero:
         return
     context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
-               "dataset": cfg.data.dataset}
+               "dataset": cfg.data.dataset, **extra}
     write_metrics(metrics, Path(cfg.output_dir), context)
     print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
 

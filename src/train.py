@@ -1,8 +1,8 @@
 """Train a registration network, then evaluate its best checkpoint on the experiment's test set.
 
     python -m src.train                                   # OMNet on the embedded synthetic default
-    python -m src.train +exp=unseen_categories            # the paper's experiment on ModelNet40
-    python -m src.train +exp=unseen_shapes data=synthetic trainer=smoke   # 2-minute CPU demo
+    python -m src.train +exp=unseen_categories data=modelnet40   # the paper's experiment on ModelNet40
+    python -m src.train +exp=unseen_shapes trainer=smoke  # 2-minute CPU demo on the synthetic default
     python -m src.train ... ckpt_path=outputs/.../checkpoints/last.ckpt   # resume
     python -m src.train -m +sweep=noise                   # a paper study as a sweep (docs/sweeps.md)
 
@@ -12,6 +12,7 @@ with the sweep in a multirun and re-raises in a single run (``record`` / ``raise
 
 from __future__ import annotations
 
+import time
 import warnings
 from pathlib import Path
 
@@ -46,13 +47,16 @@ def train(cfg: DictConfig) -> dict[str, float]:
     trainer = build_trainer(cfg)
     if cfg.ckpt_path and not Path(cfg.ckpt_path).is_file():
         raise CheckpointError(f"cannot resume: checkpoint {cfg.ckpt_path} does not exist")
+    start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+    fit_seconds = time.perf_counter() - start
     if not cfg.test_after_fit:
         return {}
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, best)
+    report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
+                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path)
     return metrics
 
 

@@ -79,7 +79,8 @@ def _run(*args: str, env_extra: dict | None = None) -> subprocess.CompletedProce
 
 
 def test_missing_modelnet_cache_is_one_clear_line(tmp_path):
-    result = _run("-m", "src.train", "+exp=unseen_categories", f"data.cache_root={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}")
+    result = _run("-m", "src.train", "+exp=unseen_categories", "data=modelnet40", f"data.cache_root={tmp_path}",
+                  f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode == 2
     error = result.stderr.strip().splitlines()[-1]
     assert error.startswith("error: ") and "src.data.prepare" in error and "data=synthetic" in error

@@ -1,0 +1,126 @@
+"""Shipped checkpoints: export a training run's best checkpoint, and find the one for an experiment.
+
+    python -m src.models.pretrained export outputs/ship_periter --name omnet_unseen_categories_synthetic_ts \
+        --evaluation stanford=outputs/ship_stanford/metrics.json
+
+writes ``checkpoints/<name>.ckpt`` (weights and the network config only: no optimiser state, so it
+loads with ``RegistrationModule.load_from_checkpoint``) and ``checkpoints/<name>.json`` (what it is,
+how it was trained, its test metrics and any further evaluations). ``python -m src.eval`` without
+``ckpt_path`` uses the shipped checkpoint whose experiment (task, dataset, sampling, partial manner)
+matches the config.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import torch
+import yaml
+
+from src.errors import CheckpointError
+from src.models.module import RegistrationModule
+
+SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
+IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
+
+
+def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR) -> Path:
+    """The shipped checkpoint trained for ``identity`` (task, dataset, sampling, partial)."""
+    cards = {path: json.loads(path.read_text()) for path in sorted(directory.glob("*.json"))}
+    for path, card in cards.items():
+        if all(card["experiment"][k] == identity[k] for k in IDENTITY_KEYS):
+            return path.with_suffix(".ckpt")
+    available = [" ".join(f"{k}={card['experiment'][k]}" for k in IDENTITY_KEYS) for card in cards.values()]
+    wanted = " ".join(f"{k}={identity[k]}" for k in IDENTITY_KEYS)
+    raise CheckpointError(
+        f"no shipped checkpoint for {wanted} (shipped: {'; '.join(available) or 'none'}): "
+        "train one with `python -m src.train` and pass ckpt_path=PATH"
+    )
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _validation_curve(run_dir: Path) -> list[dict[str, float]]:
+    """Validation Error(R)/Error(t) per validated step, from the CSV logger."""
+    logs = sorted(run_dir.glob("csv/**/metrics.csv"))
+    if not logs:
+        return []
+    frame = pd.read_csv(logs[0])
+    if "val/Error(R)" not in frame:
+        return []
+    rows = frame.dropna(subset=["val/Error(R)"])
+    return [{"step": int(r["step"]), "Error(R)": round(float(r["val/Error(R)"]), 3),
+             "Error(t)": round(float(r["val/Error(t)"]), 4)} for _, r in rows.iterrows()]
+
+
+def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: dict[str, Path] | None = None,
+           note: str = "") -> Path:
+    """Write ``<out_dir>/<name>.ckpt`` and ``.json`` from a finished ``src.train`` run directory."""
+    results = json.loads((run_dir / "metrics.json").read_text())
+    config = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
+    source = Path(results["checkpoint"])
+    if not source.is_file():
+        raise CheckpointError(f"the run's best checkpoint {source} does not exist")
+    full = torch.load(source, map_location="cpu", weights_only=False)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / f"{name}.ckpt"
+    torch.save({"state_dict": full["state_dict"], "hyper_parameters": full["hyper_parameters"],
+                "pytorch-lightning_version": full["pytorch-lightning_version"]}, target)
+    network = full["hyper_parameters"]["network"]
+    card: dict[str, Any] = {
+        "name": name,
+        "file": target.name,
+        "sha256": _sha256(target),
+        "size_mb": round(target.stat().st_size / 2**20, 2),
+        "note": note,
+        "experiment": {k: results[k] for k in IDENTITY_KEYS} | {
+            "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
+        "network": network,
+        "parameters": sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters()),
+        "training": {
+            "step_of_checkpoint": int(full["global_step"]),
+            "steps_run": results.get("global_step"),
+            "fit_seconds": results.get("fit_seconds"),
+            "batch_size": config["data"]["batch_size"],
+            "optimizer": {k: full["hyper_parameters"][k] for k in ("lr", "weight_decay", "lr_milestones", "lr_gamma")},
+            "precision": config["trainer"]["precision"],
+            "accelerator": config["trainer"]["accelerator"],
+            "seed": config["seed"],
+            "validation": _validation_curve(run_dir),
+        },
+        "metrics": {"test": results["metrics"]}
+        | {key: json.loads(path.read_text())["metrics"] for key, path in (evaluations or {}).items()},
+    }
+    target.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+    return target
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    exp = sub.add_parser("export", help="export a run's best checkpoint with its card")
+    exp.add_argument("run_dir", type=Path)
+    exp.add_argument("--name", required=True)
+    exp.add_argument("--out-dir", type=Path, default=SHIPPED_DIR)
+    exp.add_argument("--evaluation", action="append", default=[], metavar="KEY=METRICS_JSON",
+                     help="metrics.json of a src.eval run of this checkpoint, stored under KEY")
+    exp.add_argument("--note", default="")
+    args = parser.parse_args(argv)
+    evaluations = dict(item.split("=", 1) for item in args.evaluation)
+    target = export(args.run_dir, args.name, args.out_dir, {k: Path(v) for k, v in evaluations.items()}, args.note)
+    print(f"wrote {target} and {target.with_suffix('.json').name}")
+
+
+if __name__ == "__main__":
+    main()
