@@ -6,6 +6,7 @@ columns = methods.
     python -m benchmarks.speed --methods icp,fgr,symmetric_icp --sizes 1024 --repeats 10
     python -m benchmarks.speed --methods omnet,dcp --checkpoint omnet=outputs/.../best.ckpt
     python -m benchmarks.speed --devices cpu --max-seconds 20 --out results/speed
+    python -m benchmarks.speed --methods omnet --batch-sizes 1,64,256 --compile reduce-overhead --precision bf16
 
 Pairs. For each size N, ``warmup + repeats`` pairs of the asymmetric L-shaped test solid
 (:func:`baselines.testing.l_shape_surface`): the source is one sampling of N points, the reference
@@ -21,9 +22,15 @@ name=PATH`` or, without one, **freshly initialised weights** of the paper-sized 
 (``conf/model/<name>.yaml``, ``--model-scale 1.0``): timing does not need trained weights; such
 columns are marked † and ``weights=untrained`` in the CSV.
 
+Batched throughput. ``--batch-sizes 1,64,...`` also times learned networks on B pairs per forward pass
+(all B pairs of one size stacked, host-to-device copy and the result's copy back included) and reports
+pairs per second. ``--compile default|reduce-overhead|max-autotune`` wraps the network in
+``torch.compile`` (``reduce-overhead`` uses CUDA graphs on a GPU), ``--precision bf16`` runs it under
+bf16 autocast (OMNet keeps its poses in float32); compilation happens during the warm-up.
+
 Outputs (``--out``, default ``outputs/speed``): ``speed.csv`` (one row per method × device × size:
-``points, method, method_id, device, weights, ms_per_pair, ms_p25, ms_p75, runs, note``) and
-``speed.md`` (one table per device, the device and the machine in its header; with ``--paper``,
+``points, batch, method, method_id, device, weights, ms_per_pair, ms_p25, ms_p75, pairs_per_s, runs,
+note``) and ``speed.md`` (one batch-1 table per device and, with batch sizes > 1, a throughput table; the device and the machine in its header; with ``--paper``,
 default on when the paper's CSV is found, the paper's own table below for reference).
 """
 
@@ -92,25 +99,29 @@ class Timing:
     device: str
     weights: str
     points: int
-    times_ms: list[float]
+    times_ms: list[float]  # per call of ``batch`` pairs
     note: str = ""
+    batch: int = 1
 
     def row(self) -> dict[str, Any]:
-        times = self.times_ms
-        q = np.percentile(times, [25, 75]) if times else [np.nan, np.nan]
+        per_pair = [t / self.batch for t in self.times_ms]
+        q = np.percentile(per_pair, [25, 75]) if per_pair else [np.nan, np.nan]
+        median = statistics.median(per_pair) if per_pair else np.nan
         return {
-            "points": self.points, "method": self.label, "method_id": self.method, "device": self.device,
-            "weights": self.weights, "ms_per_pair": statistics.median(times) if times else np.nan,
-            "ms_p25": float(q[0]), "ms_p75": float(q[1]), "runs": len(times), "note": self.note,
+            "points": self.points, "batch": self.batch, "method": self.label, "method_id": self.method,
+            "device": self.device, "weights": self.weights, "ms_per_pair": median,
+            "ms_p25": float(q[0]), "ms_p75": float(q[1]), "pairs_per_s": 1000.0 / median if per_pair else np.nan,
+            "runs": len(per_pair), "note": self.note,
         }
 
 
 def time_method(
     registrator: Registrator, sizes: list[int], repeats: int, warmup: int, max_seconds: float | None,
-    label: str, device: str, weights: str, progress: bool = True,
+    label: str, device: str, weights: str, progress: bool = True, batch: int = 1,
 ) -> list[Timing]:
-    """Median-ready timings (ms) of ``registrator.register`` at each size; a size that fails is
-    recorded with no times and the reason, and larger sizes are still tried."""
+    """Median-ready timings (ms) of ``registrator.register`` (``register_batch`` of ``batch`` stacked
+    pairs when ``batch > 1``) at each size; a size that fails is recorded with no times and the
+    reason, and larger sizes are still tried."""
     from tqdm.auto import tqdm
 
     registrator.setup()
@@ -119,14 +130,19 @@ def time_method(
     for n in sizes:
         times: list[float] = []
         note = ""
-        pairs = [make_pair(n, seed) for seed in range(warmup + repeats)]
+        inputs = [make_pair(n, seed) for seed in range(warmup + repeats)]
+        if batch > 1:  # each call: `batch` pairs (the sampled pairs repeated to fill it)
+            inputs = [tuple(np.stack([inputs[(k + j) % len(inputs)][i] for j in range(batch)]) for i in (0, 1))
+                      for k in range(len(inputs))]
+        register = registrator.register if batch == 1 else registrator.register_batch
         started = time.perf_counter()
-        bar = tqdm(total=warmup + repeats, disable=not progress, desc=f"{label} {device} {n}", unit="pair", leave=False)
+        bar = tqdm(total=warmup + repeats, disable=not progress, desc=f"{label} {device} {n}x{batch}", unit="call",
+                   leave=False)
         try:
-            for k, (src, ref) in enumerate(pairs):
+            for k, (src, ref) in enumerate(inputs):
                 sync()
                 start = time.perf_counter()
-                registrator.register(src, ref)
+                register(src, ref)
                 sync()
                 elapsed = (time.perf_counter() - start) * 1000.0
                 bar.update(1)
@@ -142,7 +158,7 @@ def time_method(
             _free_cuda()
         finally:
             bar.close()
-        out.append(Timing(registrator.name, label, device, weights, n, times, note))
+        out.append(Timing(registrator.name, label, device, weights, n, times, note, batch))
     return out
 
 
@@ -201,7 +217,7 @@ def _fmt_paper(value: float) -> str:
 
 def markdown_table(frame: pd.DataFrame, device: str, header: str) -> str:
     """Rows = number of points, columns = methods (the paper's layout); ms per pair (median)."""
-    part = frame[(frame["device"] == device) | (frame["weights"] == "none")]
+    part = frame[((frame["device"] == device) | (frame["weights"] == "none")) & (frame["batch"] == 1)]
     if part.empty:
         return ""
     order = sorted(part["method_id"].unique(), key=_column_order)
@@ -233,6 +249,24 @@ def markdown_table(frame: pd.DataFrame, device: str, header: str) -> str:
     for _, row in part[part["note"].astype(bool)].iterrows():
         notes.append(f"{row['method']} at {row['points']} points: {row['note']}")
     return "\n".join(lines + [""] + [f"- {n}" for n in notes]) + "\n"
+
+
+def throughput_table(frame: pd.DataFrame, device: str, header: str) -> str:
+    """Learned networks with batch > 1: pairs per second (median call), rows = points."""
+    part = frame[(frame["device"] == device) & (frame["weights"] != "none")]
+    if not (part["batch"] > 1).any():
+        return ""
+    columns = list(dict.fromkeys(zip(part["method"], part["batch"])))
+    lines = [f"**Throughput (pairs per second) — {header}**", "",
+             "| # points | " + " | ".join(f"{m} B={b}" for m, b in columns) + " |", "|---:|" + "---:|" * len(columns)]
+    for points in sorted(part["points"].unique()):
+        cells = []
+        for method, batch in columns:
+            hit = part[(part["points"] == points) & (part["method"] == method) & (part["batch"] == batch)]
+            value = float(hit["pairs_per_s"].iloc[0]) if len(hit) else np.nan
+            cells.append(f"{value:,.0f}" if np.isfinite(value) else "-")
+        lines.append(f"| {points} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def paper_table(paper_dir: Path | None = None) -> str:
@@ -278,6 +312,39 @@ def build(method: str, device: str, checkpoints: dict[str, str], model_scale: fl
     return get_registrator(method, fresh_weights=True, model_scale=model_scale, device=device), "untrained"
 
 
+def accelerate(registrator: Registrator, compile_mode: str, precision: str) -> str:
+    """Apply ``torch.compile`` / bf16 autocast to a learned registrator's network; returns a label suffix."""
+    import torch
+
+    if compile_mode == "none" and precision == "fp32":
+        return ""
+    module = registrator.module
+    network = module.network
+    if compile_mode != "none":
+        network = torch.compile(network, mode=None if compile_mode == "default" else compile_mode)
+    if precision == "bf16":
+        network = _autocast(network, registrator.device.type)
+    module.network = network
+    return " [" + ", ".join(x for x in (f"compile={compile_mode}" if compile_mode != "none" else "",
+                                         precision if precision != "fp32" else "") if x) + "]"
+
+
+def _autocast(network: Any, device_type: str) -> Any:
+    """``network`` called under bf16 autocast, as a module (it replaces the module's network)."""
+    import torch
+
+    class Autocast(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.inner = network
+
+        def forward(self, *args: Any, **kwargs: Any) -> Any:
+            with torch.autocast(device_type, dtype=torch.bfloat16):
+                return self.inner(*args, **kwargs)
+
+    return Autocast()
+
+
 def run(args: argparse.Namespace) -> pd.DataFrame:
     import torch
 
@@ -289,6 +356,9 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         raise ConfigError(f"--sizes must list point counts >= 3, got {args.sizes!r}")
     if args.repeats < 1 or args.warmup < 0:
         raise ConfigError("--repeats must be >= 1 and --warmup >= 0")
+    batch_sizes = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
+    if not batch_sizes or min(batch_sizes) < 1:
+        raise ConfigError(f"--batch-sizes must list sizes >= 1, got {args.batch_sizes!r}")
     devices = [d.strip() for d in (args.devices or ("cpu,cuda" if torch.cuda.is_available() else "cpu")).split(",") if d.strip()]
     for device in devices:
         if device not in ("cpu", "cuda"):
@@ -308,8 +378,11 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
                 print(f"note: skipping {method}: {err}", file=sys.stderr)
                 break
             label = getattr(registrator, "label", display_name(method))
-            timings += time_method(registrator, sizes, args.repeats, args.warmup, args.max_seconds, label, device,
-                                   weights, progress=not args.no_progress)
+            if learned:
+                label += accelerate(registrator, args.compile, args.precision)
+            for batch in batch_sizes if learned else [1]:
+                timings += time_method(registrator, sizes, args.repeats, args.warmup, args.max_seconds, label,
+                                       device, weights, progress=not args.no_progress, batch=batch)
             del registrator
             _free_cuda()
     frame = pd.DataFrame([t.row() for t in timings])
@@ -321,6 +394,9 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         table = markdown_table(frame, device, describe_device(device) + ("" if device == "cpu" else "; classical methods on the " + describe_device("cpu")))
         if table:
             parts.append(table)
+        throughput = throughput_table(frame, device, describe_device(device))
+        if throughput:
+            parts.append(throughput)
     if args.paper:
         reference = paper_table(args.paper_dir)
         if reference:
@@ -341,6 +417,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=2, help="untimed pairs first (default 2)")
     parser.add_argument("--devices", default=None, help="cpu and/or cuda for the learned methods (default: cpu, plus cuda if available)")
     parser.add_argument("--checkpoint", action="append", metavar="NAME=PATH", help="trained weights of a learned method (repeatable)")
+    parser.add_argument("--batch-sizes", default="1", help="pairs per forward pass of learned networks, e.g. 1,64,256 (default 1)")
+    parser.add_argument("--compile", default="none", choices=("none", "default", "reduce-overhead", "max-autotune"),
+                        help="torch.compile the learned networks (reduce-overhead: CUDA graphs on a GPU)")
+    parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16"), help="bf16: autocast the networks")
     parser.add_argument("--model-scale", type=float, default=1.0, help="width of untrained networks (default 1.0 = the paper's)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--max-seconds", type=float, default=None, help="stop timing a cell after this many seconds (>= 1 timed run)")

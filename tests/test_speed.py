@@ -38,3 +38,17 @@ def test_speed_errors_are_one_line(tmp_path, capsys):
     assert speed.main(["--methods", "omnet", "--checkpoint", f"omnet={tmp_path}/none.ckpt", "--devices", "cpu",
                        "--out", str(tmp_path), "--no-progress"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_batched_throughput_table_for_a_network(tmp_path):
+    code = speed.main(["--methods", "toy,omnet", "--sizes", "32,48", "--batch-sizes", "1,4", "--repeats", "2",
+                       "--warmup", "1", "--devices", "cpu", "--precision", "bf16", "--model-scale", "0.0625",
+                       "--out", str(tmp_path), "--no-progress", "--no-paper"])
+    assert code == 0
+    frame = pd.read_csv(tmp_path / "speed.csv")
+    assert sorted(frame.loc[frame["method_id"] == "omnet", "batch"]) == [1, 1, 4, 4]
+    assert (frame.loc[frame["method_id"] == "toy", "batch"] == 1).all()  # classical methods: one pair per call
+    assert ((frame["pairs_per_s"] - 1000.0 / frame["ms_per_pair"]).abs() < 1e-6 * frame["pairs_per_s"]).all()
+    markdown = (tmp_path / "speed.md").read_text()
+    assert "| # points | toy | OMNet [bf16]† |" in markdown
+    assert "**Throughput (pairs per second)" in markdown and "OMNet (untrained) [bf16] B=4" in markdown
