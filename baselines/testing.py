@@ -99,6 +99,17 @@ def make_pair(
     return src, ref
 
 
+def paper_range_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(src, ref, transform)``: two samplings of ``n`` points of the L-shaped solid, the reference
+    moved by Euler angles in [0°, 45°] and a translation in ±0.5 (the paper's range), seeded by
+    ``(seed, n)``. Used for timing, where the content of the pair hardly matters."""
+    rng = np.random.default_rng([seed, n])
+    src = l_shape_surface(n, seed=int(rng.integers(1 << 30)))
+    base = l_shape_surface(n, seed=int(rng.integers(1 << 30)))
+    transform = euler_transform(tuple(rng.uniform(0.0, 45.0, 3)), tuple(rng.uniform(-0.5, 0.5, 3)))
+    return src, apply_transform(transform, base), transform
+
+
 def rotation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
     """Geodesic angle between the two rotations, in degrees."""
     delta = estimate[:3, :3].T @ truth[:3, :3]

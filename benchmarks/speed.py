@@ -77,15 +77,11 @@ def display_name(method: str) -> str:
 
 
 def make_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A (src, ref) pair of ``n`` points each: two samplings of the L-shaped solid, the reference
-    moved by Euler angles in [0°, 45°] and a translation in ±0.5."""
-    from baselines.testing import euler_transform, l_shape_surface
+    """A (src, ref) pair of ``n`` points each (:func:`baselines.testing.paper_range_pair`), rounded
+    to float32 as the networks see it."""
+    from baselines.testing import paper_range_pair
 
-    rng = np.random.default_rng([seed, n])
-    src = l_shape_surface(n, seed=int(rng.integers(1 << 30)))
-    base = l_shape_surface(n, seed=int(rng.integers(1 << 30)))
-    transform = euler_transform(tuple(rng.uniform(0.0, 45.0, 3)), tuple(rng.uniform(-0.5, 0.5, 3)))
-    ref = base @ transform[:3, :3].T + transform[:3, 3]
+    src, ref, _ = paper_range_pair(n, seed)
     return src.astype(np.float32).astype(np.float64), ref.astype(np.float32).astype(np.float64)
 
 

@@ -118,6 +118,21 @@ class LearnedConfig(RegistratorConfig):
         self.model_overrides = tuple(str(o) for o in (self.model_overrides or ()))
 
 
+def compose_model_config(model: str, model_scale: float, overrides: Sequence[str] = ()) -> Any:
+    """The ``model`` group of ``conf/`` for ``conf/model/<model>.yaml`` (a RegistrationModule config)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from src.config import register_resolvers
+
+    register_resolvers()
+    overrides = [f"model={model}", f"model_scale={model_scale}", *overrides]
+    if GlobalHydra.instance().is_initialized():
+        return compose("config", overrides=overrides).model
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=overrides).model
+
+
 def read_checkpoint_network(path: str | Path) -> str:
     """The ``_target_`` of the network stored in a ``src.train`` checkpoint (CheckpointError if
     the file is missing, unreadable or was not written by ``src.train``)."""
@@ -214,20 +229,9 @@ class LearnedRegistrator(Registrator):
 
     def _build_fresh(self):
         import hydra
-        from hydra import compose, initialize_config_dir
-        from hydra.core.global_hydra import GlobalHydra
 
-        from src.config import register_resolvers
-
-        register_resolvers()
         cfg: LearnedConfig = self.config
-        overrides = [f"model={self.name}", f"model_scale={cfg.model_scale}", *cfg.model_overrides]
-        if GlobalHydra.instance().is_initialized():
-            model_cfg = compose("config", overrides=overrides).model
-        else:
-            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-                model_cfg = compose("config", overrides=overrides).model
-        module = hydra.utils.instantiate(model_cfg)
+        module = hydra.utils.instantiate(compose_model_config(self.name, cfg.model_scale, cfg.model_overrides))
         if module.network_target != self.network_target:  # pragma: no cover - conf/model out of sync
             raise ConfigError(f"conf/model/{self.name}.yaml builds {module.network_target}, expected {self.network_target}")
         return module

@@ -1,0 +1,156 @@
+"""Training-step time of a registration network (forward, loss, backward, Adam step), per precision
+and compile mode: the issue's profile of OMNet's step (batch 64, 717 and 1,024 points, 4 iterations).
+
+    python -m benchmarks.train_step                                        # OMNet, batch 64, 717/1024 pts, fp32/bf16 x eager/compiled
+    python -m benchmarks.train_step --device cpu --batch 8 --precisions fp32 --compile none --steps 3
+    python -m benchmarks.train_step --model-overrides model.network.share_weights=true
+
+Each configuration builds the network from ``conf/model/<model>.yaml`` (fresh weights: the step's cost
+does not depend on them), one fixed batch of pairs already on the device (so data loading is not
+timed), and Adam; ``--warmup`` steps (which include compilation) are not timed, then the median of
+``--steps`` steps, each synchronised with the device, is reported in ms, with pairs per second.
+The math is the same in every configuration; bf16 runs under autocast (OMNet keeps poses in float32).
+
+Outputs (``--out``, default ``outputs/train_step``): ``train_step.csv`` and ``train_step.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from benchmarks.speed import describe_device
+from src.errors import ConfigError, UserError
+
+
+def pair_batch(batch: int, points: int, device: torch.device) -> dict[str, torch.Tensor]:
+    """``batch`` pairs of ``points`` points (:func:`baselines.testing.paper_range_pair`) on ``device``."""
+    from baselines.testing import paper_range_pair
+
+    pairs = [paper_range_pair(points, seed) for seed in range(batch)]
+    stacked = lambda i: torch.as_tensor(np.stack([p[i] for p in pairs]), dtype=torch.float32, device=device)  # noqa: E731
+    return {"points_src": stacked(0), "points_ref": stacked(1), "transform_gt": stacked(2)}
+
+
+def build_network(model: str, model_scale: float, overrides: list[str]) -> torch.nn.Module:
+    """The network of ``conf/model/<model>.yaml`` with fresh weights."""
+    import hydra
+
+    from baselines.learned.adapter import compose_model_config
+
+    return hydra.utils.instantiate(compose_model_config(model, model_scale, overrides).network)
+
+
+def time_steps(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str, steps: int,
+               warmup: int) -> list[float]:
+    """Milliseconds of each timed training step."""
+    device = batch["points_src"].device
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    times = []
+    for k in range(warmup + steps):
+        sync()
+        start = time.perf_counter()
+        optimizer.zero_grad(set_to_none=True)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
+            outputs = network(batch["points_src"], batch["points_ref"], batch["transform_gt"])
+            loss = network.loss(outputs, batch["transform_gt"])["loss"]
+        loss.backward()
+        optimizer.step()
+        sync()
+        if k >= warmup:
+            times.append((time.perf_counter() - start) * 1000.0)
+    if not np.isfinite(loss.item()):
+        raise RuntimeError(f"the training loss is not finite ({loss.item()}) under {precision}")
+    return times
+
+
+def run(args: argparse.Namespace) -> pd.DataFrame:
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: CUDA is not available on this machine")
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = args.tf32
+        torch.backends.cudnn.allow_tf32 = args.tf32
+    points_list = [int(p) for p in args.points.split(",")]
+    rows = []
+    for points, precision, compile_mode in itertools.product(points_list, args.precisions.split(","),
+                                                             args.compile.split(",")):
+        if precision not in ("fp32", "bf16") or compile_mode not in ("none", "default", "reduce-overhead", "max-autotune"):
+            raise ConfigError(f"unknown precision {precision!r} or compile mode {compile_mode!r}")
+        torch.manual_seed(0)
+        network = build_network(args.model, args.model_scale, args.model_overrides).to(device).train()
+        step_network = network if compile_mode == "none" else torch.compile(
+            network, mode=None if compile_mode == "default" else compile_mode)
+        step_network.loss = network.loss
+        batch = pair_batch(args.batch, points, device)
+        times = time_steps(step_network, batch, precision, args.steps, args.warmup)
+        median = statistics.median(times)
+        rows.append({"model": args.model, "model_scale": args.model_scale, "points": points, "batch": args.batch,
+                     "precision": precision, "compile": compile_mode, "device": device.type,
+                     "ms_per_step": median, "ms_min": min(times), "pairs_per_s": args.batch * 1000.0 / median,
+                     "steps": len(times), "parameters": sum(p.numel() for p in network.parameters())})
+        print(f"{points} points, {precision}, compile={compile_mode}: {median:.1f} ms/step", flush=True)
+        del network, step_network, batch
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    frame = pd.DataFrame(rows)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out / "train_step.csv", index=False)
+    markdown = markdown_table(frame, describe_device(device.type), args)
+    (out / "train_step.md").write_text(markdown)
+    print(markdown)
+    return frame
+
+
+def markdown_table(frame: pd.DataFrame, device: str, args: argparse.Namespace) -> str:
+    eager = frame[(frame["precision"] == "fp32") & (frame["compile"] == "none")].set_index("points")["ms_per_step"]
+    lines = [f"**Training step of {args.model} (width {args.model_scale}, {int(frame['parameters'].iloc[0]):,} "
+             f"parameters), batch {args.batch} — {device}**", "",
+             "| # points | precision | compile | ms/step (median) | pairs/s | vs eager fp32 |", "|---:|---|---|---:|---:|---:|"]
+    for _, row in frame.iterrows():
+        ratio = eager.get(row["points"])
+        speedup = f"{ratio / row['ms_per_step']:.2f}×" if ratio is not None else "-"
+        lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['ms_per_step']:.1f} | "
+                     f"{row['pairs_per_s']:,.0f} | {speedup} |")
+    lines += ["", f"- median of {int(frame['steps'].min())} timed steps after {args.warmup} warm-up steps; "
+              f"fresh weights; one fixed batch on the device (data loading not timed)",
+              f"- command: `python -m benchmarks.train_step {' '.join(sys.argv[1:])}`"]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.train_step", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", default="omnet", help="conf/model/<name>.yaml (default omnet)")
+    parser.add_argument("--model-scale", type=float, default=1.0, help="channel width (default 1.0 = the paper's)")
+    parser.add_argument("--model-overrides", nargs="*", default=[], help="Hydra overrides, e.g. model.network.share_weights=true")
+    parser.add_argument("--points", default="717,1024", help="points per cloud (default 717,1024)")
+    parser.add_argument("--batch", type=int, default=64, help="pairs per step (default 64)")
+    parser.add_argument("--precisions", default="fp32,bf16", help="fp32 and/or bf16 (default both)")
+    parser.add_argument("--compile", default="none,default", help="torch.compile modes: none, default, reduce-overhead, max-autotune")
+    parser.add_argument("--steps", type=int, default=20, help="timed steps (default 20)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed steps first, incl. compilation (default 5)")
+    parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    parser.add_argument("--tf32", action=argparse.BooleanOptionalAction, default=False,
+                        help="allow TF32 matmuls in fp32 on the GPU (changes fp32 rounding; default off)")
+    parser.add_argument("--out", default="outputs/train_step", help="output folder")
+    args = parser.parse_args(argv)
+    try:
+        run(args)
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,28 @@
+"""benchmarks.train_step: the training-step timing table (a tiny OMNet on the CPU)."""
+
+import pandas as pd
+
+from benchmarks.train_step import main, pair_batch
+
+
+def test_train_step_table(tmp_path, capsys):
+    code = main(["--device", "cpu", "--batch", "2", "--points", "48,64", "--model-scale", "0.0625", "--steps", "2",
+                 "--warmup", "1", "--compile", "none", "--out", str(tmp_path)])
+    assert code == 0
+    frame = pd.read_csv(tmp_path / "train_step.csv")
+    assert list(zip(frame["points"], frame["precision"])) == [(48, "fp32"), (48, "bf16"), (64, "fp32"), (64, "bf16")]
+    assert (frame["ms_per_step"] > 0).all() and (frame["steps"] == 2).all()
+    markdown = (tmp_path / "train_step.md").read_text()
+    assert "| 48 | fp32 | none |" in markdown and "1.00×" in markdown and "batch 2 — CPU:" in markdown
+    assert main(["--device", "cpu", "--precisions", "fp16", "--out", str(tmp_path)]) == 2
+    assert "unknown precision 'fp16'" in capsys.readouterr().err
+
+
+def test_pair_batch_is_rigid_and_seeded():
+    import torch
+
+    first, again = pair_batch(3, 40, torch.device("cpu")), pair_batch(3, 40, torch.device("cpu"))
+    assert first["points_src"].shape == (3, 40, 3) and first["transform_gt"].shape == (3, 4, 4)
+    assert all(torch.equal(first[k], again[k]) for k in first)
+    rotation = first["transform_gt"][:, :3, :3]
+    assert torch.allclose(rotation @ rotation.transpose(1, 2), torch.eye(3).expand(3, 3, 3), atol=1e-5)
