@@ -51,7 +51,7 @@ import pandas as pd
 
 from baselines import get_registrator, resolve_registrator
 from baselines.base import Registrator
-from src.errors import ConfigError, UserError
+from src.errors import ConfigError, exit_code_of
 
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
 CLASSICAL_DEFAULT = ("icp", "fgr", "symmetric_icp")  # Go-ICP only when named (the paper omits it)
@@ -425,12 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--paper-dir", type=Path, default=None, help="folder of the paper's CSVs")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
-    try:
-        run(args)
-    except UserError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return 0
+    return exit_code_of(lambda: run(args))
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ import pandas as pd
 import torch
 
 from benchmarks.speed import describe_device
-from src.errors import ConfigError, UserError
+from src.errors import ConfigError, exit_code_of
 
 
 def pair_batch(batch: int, points: int, device: torch.device) -> dict[str, torch.Tensor]:
@@ -144,12 +144,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="allow TF32 matmuls in fp32 on the GPU (changes fp32 rounding; default off)")
     parser.add_argument("--out", default="outputs/train_step", help="output folder")
     args = parser.parse_args(argv)
-    try:
-        run(args)
-    except UserError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return 0
+    return exit_code_of(lambda: run(args))
 
 
 if __name__ == "__main__":

@@ -39,7 +39,7 @@ from src.data.download import download as download_file
 from src.data.mesh import MeshShape
 from src.data.readers import READERS, Archive, PointShape, Reader, layout_of
 from src.data.sampling import METHOD, NORMALIZATION, sample_shape
-from src.errors import DatasetError, UserError
+from src.errors import DatasetError, exit_code_of
 
 log = logging.getLogger(__name__)
 
@@ -398,16 +398,11 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
-    try:
-        prepare(
-            args.dataset, source=args.source, cache_root=args.cache_root, num_samplings=args.num_samplings,
-            num_points=args.num_points, seed=args.seed, workers=args.workers, download=args.download,
-            url=args.url, force=args.force, limit=args.limit,
-        )
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+    return exit_code_of(lambda: prepare(
+        args.dataset, source=args.source, cache_root=args.cache_root, num_samplings=args.num_samplings,
+        num_points=args.num_points, seed=args.seed, workers=args.workers, download=args.download,
+        url=args.url, force=args.force, limit=args.limit,
+    ))
 
 
 if __name__ == "__main__":
