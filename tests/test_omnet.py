@@ -124,3 +124,18 @@ def test_poses_stay_float32_and_rigid_under_bf16_autocast():
     assert final.dtype == torch.float32 and torch.isfinite(losses["loss"])
     rot = final[:, :3, :3]
     torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand(4, 3, 3), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("train", [True, False])
+def test_fusion_layer_with_global_features_equals_the_concatenated_input(train):
+    """The first fusion layer computes the broadcast global part once per cloud: same function."""
+    from src.models.omnet import PointwiseLayer
+
+    torch.manual_seed(0)
+    layer = PointwiseLayer(8 + 2 * 16, 12).train(train)
+    if not train:
+        layer.norm.running_mean.uniform_(-1, 1)
+        layer.norm.running_var.uniform_(0.5, 2)
+    local, glob = torch.randn(3, 50, 8), torch.randn(3, 32)
+    concatenated = torch.cat((local, glob.unsqueeze(1).expand(-1, 50, -1)), dim=-1)
+    torch.testing.assert_close(layer.forward_with_global(local, glob), layer(concatenated), rtol=1e-5, atol=1e-5)
