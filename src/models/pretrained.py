@@ -64,6 +64,14 @@ def _validation_curve(run_dir: Path) -> list[dict[str, float]]:
              "Error(t)": round(float(r["val/Error(t)"]), 4)} for _, r in rows.iterrows()]
 
 
+def _command(run_dir: Path) -> str | None:
+    """The ``src.train`` command line of the run (Hydra's recorded overrides)."""
+    overrides = run_dir / ".hydra" / "overrides.yaml"
+    if not overrides.is_file():
+        return None
+    return " ".join(["python -m src.train", *yaml.safe_load(overrides.read_text())])
+
+
 def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: dict[str, Path] | None = None,
            note: str = "") -> Path:
     """Write ``<out_dir>/<name>.ckpt`` and ``.json`` from a finished ``src.train`` run directory."""
@@ -97,6 +105,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
             "precision": config["trainer"]["precision"],
             "accelerator": config["trainer"]["accelerator"],
             "seed": config["seed"],
+            "command": _command(run_dir),
             "validation": _validation_curve(run_dir),
         },
         "metrics": {"test": results["metrics"]}
