@@ -13,13 +13,7 @@ from torch.utils.data import DataLoader
 
 from src.data.cache import Cache, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
-from src.data.dataset import (
-    EVAL_STREAM,
-    TRAIN_STREAM,
-    EpochSampler,
-    EvalShardSampler,
-    PairDataset,
-)
+from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
 from src.data.transforms import build_pair_transforms
 from src.errors import ConfigError
@@ -146,7 +140,7 @@ class RegistrationDataModule(L.LightningDataModule):
         fit_loop = self.trainer.fit_loop
         epoch, done = self._train_sampler.epoch, fit_loop.epoch_loop.batch_progress.current.processed
         epoch_closed = fit_loop.epoch_progress.current.completed > epoch
-        if epoch_closed or done >= len(self._train_sampler) // self.batch_size:
+        if epoch_closed or done >= self.trainer.num_training_batches:  # (limit_train_batches included)
             epoch, done = epoch + 1, 0
         return {"epoch": epoch, "batches_done": done, "batch_size": self.batch_size}
 
