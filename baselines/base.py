@@ -278,6 +278,7 @@ _REGISTRY: dict[str, type[Registrator] | str] = {
     "fgr": "baselines.classical.fgr:FGR",
     "symmetric_icp": "baselines.classical.symmetric_icp:SymmetricICP",
     "goicp": "baselines.classical.goicp:GoICP",
+    "identity": "baselines.classical.identity:Identity",
     **{name: f"baselines.learned.adapter:{display}Registrator" for name, display in LEARNED_DISPLAY_NAMES.items()},
 }
 _ALIASES: dict[str, str] = {"go_icp": "goicp", "symicp": "symmetric_icp", "sym_icp": "symmetric_icp"}

@@ -73,7 +73,8 @@ GRID_FORMAT = 1
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SAMPLINGS = ("os", "ts")
 PARTIALS = ("prnet", "rpmnet")
-CLASSICAL_NAMES = {"icp": "ICP", "fgr": "FGR", "goicp": "Go-ICP", "symmetric_icp": "Symmetric ICP"}
+CLASSICAL_NAMES = {"icp": "ICP", "fgr": "FGR", "goicp": "Go-ICP", "symmetric_icp": "Symmetric ICP",
+                   "identity": "Identity (no registration)"}
 TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
                 "value", "n_pairs", "n_failed", "seconds", "seconds_per_pair", "cell")
 PAIR_ERROR_COLUMNS = ("Error(R)", "Error(t)", "MAE(R)", "MAE(t)", "chamfer")

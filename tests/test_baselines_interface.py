@@ -21,7 +21,14 @@ from src.errors import ConfigError, PointCloudError
 
 
 def test_registry_lists_the_classical_methods():
-    assert {"icp", "fgr", "symmetric_icp", "goicp"} <= set(available_registrators())
+    assert {"icp", "fgr", "symmetric_icp", "goicp", "identity"} <= set(available_registrators())
+
+
+def test_identity_returns_the_identity():
+    import numpy as np
+
+    src = np.random.default_rng(0).normal(size=(20, 3))
+    np.testing.assert_array_equal(get_registrator("identity").register(src, src + 1.0), np.eye(4))
 
 
 def test_unknown_method_names_the_available_ones():

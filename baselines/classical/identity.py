@@ -1,0 +1,18 @@
+"""The identity: no registration. The reference row of every table (what a method must beat)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from baselines.base import Registrator
+
+
+class Identity(Registrator):
+    """Returns the identity transform for every pair."""
+
+    name = "identity"
+    needs_training = False
+    needs_normals = False
+
+    def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        return np.eye(4)
