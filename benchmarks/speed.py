@@ -260,7 +260,7 @@ def throughput_table(frame: pd.DataFrame, device: str, header: str) -> str:
         for method, batch in columns:
             hit = part[(part["points"] == points) & (part["method"] == method) & (part["batch"] == batch)]
             value = float(hit["pairs_per_s"].iloc[0]) if len(hit) else np.nan
-            cells.append(f"{value:,.0f}" if np.isfinite(value) else "-")
+            cells.append("-" if not np.isfinite(value) else f"{value:,.0f}" if value >= 10 else f"{value:.2g}")
         lines.append(f"| {points} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
