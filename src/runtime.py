@@ -79,6 +79,14 @@ def save_resolved_config(cfg: DictConfig, output_dir: Path) -> None:
     _write_atomic(output_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
 
+def read_csv_logs(run_dir: Path) -> pd.DataFrame:
+    """The CSV logger's rows of a run, every version (a resumed run writes a new one) in order."""
+    files = sorted((run_dir / "csv").glob("version_*/metrics.csv"), key=lambda f: int(f.parent.name.split("_")[1]))
+    if not files:
+        return pd.DataFrame()
+    return pd.concat([pd.read_csv(f) for f in files], ignore_index=True)
+
+
 def write_metrics(metrics: dict[str, float], output_dir: Path, context: dict[str, Any]) -> pd.DataFrame:
     """metrics.json (context + metrics) and metrics.csv (one tidy row per metric)."""
     output_dir.mkdir(parents=True, exist_ok=True)

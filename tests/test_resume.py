@@ -14,6 +14,7 @@ from test_entrypoints import _cfg
 from src.callbacks import RngState, set_rng_states
 from src.data.dataset import EpochSampler
 from src.errors import ConfigError
+from src.runtime import read_csv_logs
 from src.train import train
 
 # 14 synthetic train shapes at batch 2 -> 7 batches an epoch; validation every 2 steps. last.ckpt is
@@ -58,14 +59,17 @@ class KillAt(L.Callback):
 
 
 def _interrupted(tmp, stop: int, *extra: str) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-    """Weights at the interruption and at the end of the resumed run."""
-    first, resumed = tmp / f"first{stop}{_tag(extra)}", tmp / f"resumed{stop}{_tag(extra)}"
+    """Weights at the interruption and at the end of the run resumed in the same run directory."""
+    run = tmp / f"run{stop}{_tag(extra)}"
     kill = [f"+callbacks.kill._target_={__name__}.KillAt", f"+callbacks.kill.step={stop}"]
     with pytest.raises(RuntimeError, match=f"killed at step {stop}"):
-        train(_cfg(tmp, *RUN, *extra, *kill, f"trainer.max_steps={TOTAL_STEPS}", f"output_dir={first}"))
-    train(_cfg(tmp, *RUN, *extra, f"trainer.max_steps={TOTAL_STEPS}", f"output_dir={resumed}",
-               f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}"))
-    return _weights(first), _weights(resumed)
+        train(_cfg(tmp, *RUN, *extra, *kill, f"trainer.max_steps={TOTAL_STEPS}", f"output_dir={run}"))
+    at_stop = _weights(run)
+    train(_cfg(tmp, *RUN, *extra, f"trainer.max_steps={TOTAL_STEPS}", f"output_dir={run}",
+               f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"))
+    logged = read_csv_logs(run)["step"].dropna()  # both sessions' logs are kept, one CSV version each
+    assert len(list((run / "csv").glob("version_*"))) == 2 and logged.min() < stop <= logged.max()
+    return at_stop, _weights(run)
 
 
 def _assert_same(got: dict[str, torch.Tensor], expected: dict[str, torch.Tensor], at_stop: dict[str, torch.Tensor]):

@@ -27,6 +27,7 @@ from benchmarks.latex_check import check_latex, compile_latex, tabular_rows, tab
 from benchmarks.tables import build_table, fmt, to_latex, to_markdown
 from src.config import register_resolvers
 from src.eval import evaluate
+from src.runtime import read_csv_logs
 from src.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -167,7 +168,7 @@ def test_ddp_evaluation_on_two_cpu_processes_equals_one_process(runs):
     for name, value in single.items():  # sums in float64; only the order of the final sum differs
         assert ddp[name] == pytest.approx(value, rel=1e-12, abs=1e-12), name
     # the logged test loss (sum-reduced MeanMetric) matches too, despite 2 batches on rank 0 and 1 on rank 1
-    loss = lambda d: pd.read_csv(d / "csv" / "metrics.csv")["test/loss"].dropna().iloc[-1]  # noqa: E731
+    loss = lambda d: read_csv_logs(d)["test/loss"].dropna().iloc[-1]  # noqa: E731
     assert loss(ddp_dir) == pytest.approx(loss(runs["tmp"] / "single"), rel=1e-6)
     assert not list(ddp_dir.glob("failure*.json"))
 

@@ -18,12 +18,12 @@ import json
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
 import torch
 import yaml
 
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
+from src.runtime import read_csv_logs
 
 SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
@@ -53,10 +53,7 @@ def _sha256(path: Path) -> str:
 
 def _validation_curve(run_dir: Path) -> list[dict[str, float]]:
     """Validation Error(R)/Error(t) per validated step, from the CSV logger."""
-    logs = sorted(run_dir.glob("csv/**/metrics.csv"))
-    if not logs:
-        return []
-    frame = pd.read_csv(logs[0])
+    frame = read_csv_logs(run_dir)
     if "val/Error(R)" not in frame:
         return []
     rows = frame.dropna(subset=["val/Error(R)"])
