@@ -81,7 +81,8 @@ def save_resolved_config(cfg: DictConfig, output_dir: Path) -> None:
 
 def read_csv_logs(run_dir: Path) -> pd.DataFrame:
     """The CSV logger's rows of a run, every version (a resumed run writes a new one) in order."""
-    files = sorted((run_dir / "csv").glob("version_*/metrics.csv"), key=lambda f: int(f.parent.name.split("_")[1]))
+    versions = sorted((run_dir / "csv").glob("version_*/metrics.csv"), key=lambda f: int(f.parent.name.split("_")[1]))
+    files = [f for f in [run_dir / "csv" / "metrics.csv"] if f.is_file()] + versions  # (logs without versions first)
     if not files:
         return pd.DataFrame()
     return pd.concat([pd.read_csv(f) for f in files], ignore_index=True)

@@ -61,12 +61,18 @@ def _validation_curve(run_dir: Path) -> list[dict[str, float]]:
              "Error(t)": round(float(r["val/Error(t)"]), 4)} for _, r in rows.iterrows()]
 
 
-def _command(run_dir: Path) -> str | None:
-    """The ``src.train`` command line of the run (Hydra's recorded overrides)."""
-    overrides = run_dir / ".hydra" / "overrides.yaml"
-    if not overrides.is_file():
-        return None
-    return " ".join(["python -m src.train", *yaml.safe_load(overrides.read_text())])
+def _overrides(run_dir: Path) -> list[str] | None:
+    """The run's command-line overrides as Hydra recorded them."""
+    path = run_dir / ".hydra" / "overrides.yaml"
+    return yaml.safe_load(path.read_text()) if path.is_file() else None
+
+
+def _experiment(run_dir: Path, results: dict[str, Any]) -> str:
+    """The ``+exp=<name>`` the run was composed with (its task_name may be a label), else the task."""
+    for item in _overrides(run_dir) or []:
+        if item.startswith(("+exp=", "exp=")):
+            return item.split("=", 1)[1]
+    return results["task"]
 
 
 def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: dict[str, Path] | None = None,
@@ -90,19 +96,20 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
         "size_mb": round(target.stat().st_size / 2**20, 2),
         "note": note,
         "experiment": {k: results[k] for k in IDENTITY_KEYS} | {
-            "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
+            "task": _experiment(run_dir, results), "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
         "network": network,
         "parameters": sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters()),
         "training": {
             "step_of_checkpoint": int(full["global_step"]),
             "steps_run": results.get("global_step"),
-            "fit_seconds": results.get("fit_seconds"),
+            "fit_seconds_last_session": results.get("fit_seconds"),
+            "resumed_from": results.get("resumed_from"),
             "batch_size": config["data"]["batch_size"],
             "optimizer": {k: full["hyper_parameters"][k] for k in ("lr", "weight_decay", "lr_milestones", "lr_gamma")},
             "precision": config["trainer"]["precision"],
             "accelerator": config["trainer"]["accelerator"],
             "seed": config["seed"],
-            "command": _command(run_dir),
+            "command": None if _overrides(run_dir) is None else " ".join(["python -m src.train", *_overrides(run_dir)]),
             "validation": _validation_curve(run_dir),
         },
         "metrics": {"test": results["metrics"]}

@@ -1,0 +1,66 @@
+"""Shipped checkpoints: export of a run, lookup by experiment, and `src.eval` without ckpt_path."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from test_entrypoints import _cfg
+
+from src.errors import CheckpointError
+from src.eval import evaluate
+from src.models.module import RegistrationModule
+from src.models.pretrained import SHIPPED_DIR, export, find_shipped, main
+from src.train import train
+
+IDENTITY = {"task": "unseen_shapes", "dataset": "synthetic", "sampling": "ts", "partial": "prnet"}
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("pretrained")
+    train(_cfg(tmp, "+exp=unseen_shapes", "trainer.max_steps=2", "trainer.val_check_interval=1",
+               "trainer.check_val_every_n_epoch=null", "trainer.limit_val_batches=1", "trainer.limit_test_batches=1"))
+    return tmp / "run"
+
+
+def test_export_writes_weights_only_checkpoint_and_card(run_dir, tmp_path):
+    target = export(run_dir, "tiny", tmp_path, note="test export")
+    card = json.loads((tmp_path / "tiny.json").read_text())
+    assert card["experiment"] | IDENTITY == card["experiment"] and card["note"] == "test export"
+    assert card["training"]["steps_run"] == 2 and card["training"]["fit_seconds_last_session"] > 0
+    assert [row["step"] for row in card["training"]["validation"]] == [0, 1]
+    assert set(card["metrics"]["test"]) >= {"Error(R)", "Error(t)"}
+    saved = torch.load(target, weights_only=False)
+    assert set(saved) == {"state_dict", "hyper_parameters", "pytorch-lightning_version"}  # no optimiser state
+    best = torch.load(json.loads((run_dir / "metrics.json").read_text())["checkpoint"], weights_only=False)
+    assert all(torch.equal(saved["state_dict"][k], v) for k, v in best["state_dict"].items())
+    assert card["parameters"] == sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters())
+
+
+def test_find_shipped_matches_the_experiment(run_dir, tmp_path):
+    (run_dir / ".hydra").mkdir(exist_ok=True)
+    (run_dir / ".hydra" / "overrides.yaml").write_text("- +exp=unseen_shapes\n- model_scale=0.0625\n- task_name=a_label\n")
+    main(["export", str(run_dir), "--name", "tiny", "--out-dir", str(tmp_path),
+          "--evaluation", f"again={run_dir / 'metrics.json'}"])
+    assert find_shipped(IDENTITY, tmp_path) == tmp_path / "tiny.ckpt"
+    card = json.loads((tmp_path / "tiny.json").read_text())
+    assert card["metrics"]["again"] == card["metrics"]["test"]
+    assert card["training"]["command"] == "python -m src.train +exp=unseen_shapes model_scale=0.0625 task_name=a_label"
+    assert card["experiment"]["task"] == "unseen_shapes"  # the +exp, not the task_name label
+    with pytest.raises(CheckpointError, match="no shipped checkpoint for task=unseen_shapes dataset=modelnet40 .*"
+                       "shipped: task=unseen_shapes dataset=synthetic sampling=ts partial=prnet.*ckpt_path"):
+        find_shipped(IDENTITY | {"dataset": "modelnet40"}, tmp_path)
+
+
+def test_eval_without_ckpt_path_uses_the_shipped_checkpoint(tmp_path):
+    """What a fresh clone gets from `python -m src.eval +exp=unseen_categories` (on a tiny test set here)."""
+    shipped = find_shipped({"task": "unseen_categories", "dataset": "synthetic", "sampling": "ts", "partial": "prnet"})
+    card = json.loads(shipped.with_suffix(".json").read_text())
+    assert shipped.parent == SHIPPED_DIR and shipped.stat().st_size < 60 * 2**20 and card["file"] == shipped.name
+    metrics = evaluate(_cfg(tmp_path, "+exp=unseen_categories"))
+    saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert saved["checkpoint"] == str(shipped) and saved["metrics"]["Error(R)"] == pytest.approx(metrics["Error(R)"])
+    with pytest.raises(CheckpointError, match="no shipped checkpoint for task=gaussian_noise"):
+        evaluate(_cfg(tmp_path, "+exp=gaussian_noise"))
