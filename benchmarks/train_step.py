@@ -68,8 +68,9 @@ def time_steps(network: torch.nn.Module, batch: dict[str, torch.Tensor], precisi
         sync()
         if k >= warmup:
             times.append((time.perf_counter() - start) * 1000.0)
-    if not np.isfinite(loss.item()):
-        raise RuntimeError(f"the training loss is not finite ({loss.item()}) under {precision}")
+    bad = [name for name, p in network.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
+    if not np.isfinite(loss.item()) or bad:
+        raise FloatingPointError(f"non-finite loss ({loss.item():.4g}) or gradients ({len(bad)} tensors) under {precision}")
     return times
 
 
@@ -92,13 +93,18 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
             network, mode=None if compile_mode == "default" else compile_mode)
         step_network.loss = network.loss
         batch = pair_batch(args.batch, points, device)
-        times = time_steps(step_network, batch, precision, args.steps, args.warmup)
-        median = statistics.median(times)
+        note = ""
+        try:
+            times = time_steps(step_network, batch, precision, args.steps, args.warmup)
+        except (FloatingPointError, RuntimeError) as err:  # non-finite training, compilation failure, out of memory
+            times, note = [], f"failed: {type(err).__name__}: {str(err).strip().splitlines()[0]}"
+        median = statistics.median(times) if times else float("nan")
         rows.append({"model": args.model, "model_scale": args.model_scale, "points": points, "batch": args.batch,
                      "precision": precision, "compile": compile_mode, "device": device.type,
-                     "ms_per_step": median, "ms_min": min(times), "pairs_per_s": args.batch * 1000.0 / median,
-                     "steps": len(times), "parameters": sum(p.numel() for p in network.parameters())})
-        print(f"{points} points, {precision}, compile={compile_mode}: {median:.1f} ms/step", flush=True)
+                     "ms_per_step": median, "ms_min": min(times, default=float("nan")),
+                     "pairs_per_s": args.batch * 1000.0 / median, "steps": len(times),
+                     "parameters": sum(p.numel() for p in network.parameters()), "note": note})
+        print(f"{points} points, {precision}, compile={compile_mode}: {median:.1f} ms/step {note}", flush=True)
         del network, step_network, batch
         if device.type == "cuda":
             torch.cuda.empty_cache()
@@ -118,8 +124,11 @@ def markdown_table(frame: pd.DataFrame, device: str, args: argparse.Namespace) -
              f"parameters), batch {args.batch} — {device}**", "",
              "| # points | precision | compile | ms/step (median) | pairs/s | vs eager fp32 |", "|---:|---|---|---:|---:|---:|"]
     for _, row in frame.iterrows():
+        if row["note"]:
+            lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['note']} | - | - |")
+            continue
         ratio = eager.get(row["points"])
-        speedup = f"{ratio / row['ms_per_step']:.2f}×" if ratio is not None else "-"
+        speedup = f"{ratio / row['ms_per_step']:.2f}×" if ratio is not None and np.isfinite(ratio) else "-"
         lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['ms_per_step']:.1f} | "
                      f"{row['pairs_per_s']:,.0f} | {speedup} |")
     lines += ["", f"- median of {int(frame['steps'].min())} timed steps after {args.warmup} warm-up steps; "

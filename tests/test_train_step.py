@@ -26,3 +26,21 @@ def test_pair_batch_is_rigid_and_seeded():
     assert all(torch.equal(first[k], again[k]) for k in first)
     rotation = first["transform_gt"][:, :3, :3]
     assert torch.allclose(rotation @ rotation.transpose(1, 2), torch.eye(3).expand(3, 3, 3), atol=1e-5)
+
+
+def test_a_failing_configuration_is_recorded_not_fatal(tmp_path, monkeypatch):
+    import benchmarks.train_step as train_step
+
+    real = train_step.time_steps
+
+    def flaky(network, batch, precision, steps, warmup):
+        if precision == "bf16":
+            raise FloatingPointError("non-finite loss (nan) or gradients (3 tensors) under bf16")
+        return real(network, batch, precision, steps, warmup)
+
+    monkeypatch.setattr(train_step, "time_steps", flaky)
+    assert main(["--device", "cpu", "--batch", "2", "--points", "48", "--model-scale", "0.0625", "--steps", "1",
+                 "--warmup", "0", "--compile", "none", "--out", str(tmp_path)]) == 0
+    frame = pd.read_csv(tmp_path / "train_step.csv").set_index("precision")
+    assert frame.loc["fp32", "ms_per_step"] > 0 and pd.isna(frame.loc["bf16", "ms_per_step"])
+    assert "| 48 | bf16 | none | failed: FloatingPointError: non-finite loss" in (tmp_path / "train_step.md").read_text()
