@@ -247,6 +247,13 @@ def markdown_table(frame: pd.DataFrame, device: str, header: str) -> str:
     return "\n".join(lines + [""] + [f"- {n}" for n in notes]) + "\n"
 
 
+def format_rate(value: float) -> str:
+    """Pairs per second: whole numbers from 10 up, two significant digits below, ``-`` if missing."""
+    if value is None or not np.isfinite(value):
+        return "-"
+    return f"{value:,.0f}" if value >= 10 else f"{value:.2g}"
+
+
 def throughput_table(frame: pd.DataFrame, device: str, header: str) -> str:
     """Learned networks with batch > 1: pairs per second (median call), rows = points."""
     part = frame[(frame["device"] == device) & (frame["weights"] != "none")]
@@ -260,7 +267,7 @@ def throughput_table(frame: pd.DataFrame, device: str, header: str) -> str:
         for method, batch in columns:
             hit = part[(part["points"] == points) & (part["method"] == method) & (part["batch"] == batch)]
             value = float(hit["pairs_per_s"].iloc[0]) if len(hit) else np.nan
-            cells.append("-" if not np.isfinite(value) else f"{value:,.0f}" if value >= 10 else f"{value:.2g}")
+            cells.append(format_rate(value))
         lines.append(f"| {points} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

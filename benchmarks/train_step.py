@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from benchmarks.speed import describe_device
+from benchmarks.speed import describe_device, format_rate
 from src.errors import ConfigError, exit_code_of
 
 
@@ -130,8 +130,9 @@ def markdown_table(frame: pd.DataFrame, device: str, args: argparse.Namespace) -
         ratio = eager.get(row["points"])
         speedup = f"{ratio / row['ms_per_step']:.2f}×" if ratio is not None and np.isfinite(ratio) else "-"
         lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['ms_per_step']:.1f} | "
-                     f"{row['pairs_per_s']:,.0f} | {speedup} |")
-    lines += ["", f"- median of {int(frame['steps'].min())} timed steps after {args.warmup} warm-up steps; "
+                     f"{format_rate(row['pairs_per_s'])} | {speedup} |")
+    timed = frame.loc[frame["steps"] > 0, "steps"]
+    lines += ["", f"- median of {int(timed.min()) if len(timed) else 0} timed steps after {args.warmup} warm-up steps; "
               f"fresh weights; one fixed batch on the device (data loading not timed)",
               f"- command: `python -m benchmarks.train_step {' '.join(sys.argv[1:])}`"]
     return "\n".join(lines) + "\n"
