@@ -52,12 +52,16 @@ MIN_POINTS = 3
 # --------------------------------------------------------------------------------------
 
 
-def check_cloud(points: Any, name: str = "points") -> np.ndarray:
-    """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array or raise PointCloudError."""
+def _as_float64(points: Any, name: str) -> np.ndarray:
     try:
-        arr = np.asarray(points, dtype=np.float64)
+        return np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise PointCloudError(f"{name}: cannot be read as an array of numbers ({exc})") from None
+
+
+def check_cloud(points: Any, name: str = "points") -> np.ndarray:
+    """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array or raise PointCloudError."""
+    arr = _as_float64(points, name)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise PointCloudError(f"{name}: expected an (N, 3) array of points, got shape {tuple(arr.shape)}")
     if arr.shape[0] < MIN_POINTS:
@@ -73,10 +77,7 @@ def check_cloud(points: Any, name: str = "points") -> np.ndarray:
 
 def check_batch(points: Any, name: str = "points") -> np.ndarray:
     """Return ``points`` as a float64 ``(B, N, 3)`` array or raise PointCloudError."""
-    try:
-        arr = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise PointCloudError(f"{name}: cannot be read as an array of numbers ({exc})") from None
+    arr = _as_float64(points, name)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise PointCloudError(
             f"{name}: expected a (B, N, 3) batch of point clouds, got shape {tuple(arr.shape)}"
