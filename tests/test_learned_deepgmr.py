@@ -7,6 +7,7 @@ from baselines.learned.deepgmr import DeepGMR
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import partial_pair_batch as _batch
+from registration_helpers import train_losses
 
 
 @pytest.mark.parametrize("kwargs", [dict(), dict(use_rri=False), dict(exact_procrustes=True)])
@@ -69,13 +70,5 @@ def test_loss_is_the_official_two_way_mse():
 def test_training_steps_lower_the_loss_on_a_tiny_batch():
     torch.manual_seed(0)
     model = DeepGMR(width=0.125, k=8)
-    src, ref, gt = _batch()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(10):
-        optimizer.zero_grad()
-        loss = model.loss(model(src, ref, gt), gt)["loss"]
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
+    losses = train_losses(model, _batch(), steps=10)
     assert losses[-1] < 0.2 * losses[0]

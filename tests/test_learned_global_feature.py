@@ -1,14 +1,13 @@
 """Shared global-feature blocks (exp map, LK Jacobian and loop, FMR decoder/Chamfer, DeepGMR GMM and
 RRI), and the Hydra configs + checkpoints of PointNetLK, FMR and DeepGMR."""
 
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from scipy.spatial.transform import Rotation
 
+from baselines.learned.adapter import compose_model_config
 from baselines.learned.common.encoders import PointNetEncoder
 from baselines.learned.common.global_feature import (
     FeatureMetricDecoder,
@@ -30,7 +29,6 @@ from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
 from src.models.module import RegistrationModule
 from registration_helpers import reload_via_checkpoint
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_resolvers()
 
 
@@ -199,25 +197,20 @@ NETWORKS = {
 }
 
 
-def _model_cfg(name, *extra):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("config", overrides=[f"model={name}", "data=synthetic", *extra]).model
-
-
 @pytest.mark.parametrize("name", sorted(NETWORKS))
 def test_config_composes_and_instantiates_the_module(name):
-    cfg = _model_cfg(name)
+    cfg = compose_model_config(name, 1.0)
     module = instantiate(cfg)
     assert isinstance(module, RegistrationModule) and module.network_target == NETWORKS[name]
     assert module.hparams["network"]["width"] == 1.0 and module.hparams["euler_seq"] == "zyx"
     module.configure_optimizers()
-    smoke = _model_cfg(name, "trainer=smoke", "+exp=unseen_shapes", "model_scale=0.25")
+    smoke = compose_model_config(name, 0.25, ["trainer=smoke", "+exp=unseen_shapes"])
     assert smoke.network.width == 0.25
 
 
 @pytest.mark.parametrize("name", sorted(NETWORKS))
 def test_load_from_checkpoint_rebuilds_the_network(name, tmp_path):
-    cfg = _model_cfg(name, "model_scale=0.125")
+    cfg = compose_model_config(name, 0.125)
     module = instantiate(cfg).eval()
     loaded = reload_via_checkpoint(module, tmp_path / "model.ckpt")
     assert loaded.network_target == NETWORKS[name]

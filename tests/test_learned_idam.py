@@ -1,12 +1,11 @@
 """IDAM: point elimination, iterative rigid estimates, losses, a few steps lower the loss, config and checkpoint."""
 
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from baselines.learned.adapter import compose_model_config
 from baselines.learned.idam import IDAM
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
@@ -15,7 +14,6 @@ from registration_helpers import reload_via_checkpoint
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import exact_pair_batch as _batch
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_resolvers()
 
 
@@ -61,9 +59,7 @@ def test_a_few_training_steps_lower_the_loss():
 
 
 def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("config", overrides=["model=idam", "data=synthetic"]).model
-        small = compose("config", overrides=["model=idam", "data=synthetic", "model_scale=0.5"]).model
+    cfg, small = compose_model_config("idam", 1.0), compose_model_config("idam", 0.5)
     module = instantiate(cfg)
     assert isinstance(module, RegistrationModule) and module.network_target == "baselines.learned.idam.IDAM"
     assert module.hparams["lr"] == 1e-4 and module.hparams["weight_decay"] == 1e-3

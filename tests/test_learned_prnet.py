@@ -1,12 +1,11 @@
 """PRNet: iterative rigid estimates, keypoints, loss terms, a few steps lower the loss, config and checkpoint."""
 
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from baselines.learned.adapter import compose_model_config
 from baselines.learned.prnet import PRNet
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
@@ -15,7 +14,6 @@ from registration_helpers import reload_via_checkpoint
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import exact_pair_batch as _batch
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_resolvers()
 
 
@@ -67,10 +65,8 @@ def test_a_few_training_steps_lower_the_loss(sampler):
 
 
 def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("config", overrides=["model=prnet", "data=synthetic"]).model
-        small = compose("config", overrides=["model=prnet", "data=synthetic", "model_scale=0.125",
-                                             "model.network.num_keypoints=48", "model.network.k=8"]).model
+    cfg = compose_model_config("prnet", 1.0)
+    small = compose_model_config("prnet", 0.125, ["model.network.num_keypoints=48", "model.network.k=8"])
     module = instantiate(cfg)
     assert isinstance(module, RegistrationModule) and module.network_target == "baselines.learned.prnet.PRNet"
     assert module.hparams["lr"] == 1e-3 and module.hparams["weight_decay"] == 1e-4 and module.network.num_iters == 3

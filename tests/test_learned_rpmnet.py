@@ -1,12 +1,11 @@
 """RPMNet: normals from the received points, 2 training / 5 test iterations, loss, training, config and checkpoint."""
 
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from baselines.learned.adapter import compose_model_config
 from baselines.learned.rpmnet import RPMNet
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
@@ -15,7 +14,6 @@ from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import train_losses
 from registration_helpers import exact_pair_batch as _batch
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
 register_resolvers()
 
 
@@ -77,10 +75,8 @@ def test_a_few_training_steps_lower_the_loss():
 
 
 def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("config", overrides=["model=rpmnet", "data=synthetic", "partial=rpmnet"]).model
-        small = compose("config", overrides=["model=rpmnet", "data=synthetic", "model_scale=0.125",
-                                             "model.network.num_neighbors=16"]).model
+    cfg = compose_model_config("rpmnet", 1.0, ["partial=rpmnet"])
+    small = compose_model_config("rpmnet", 0.125, ["model.network.num_neighbors=16"])
     module = instantiate(cfg)
     assert isinstance(module, RegistrationModule) and module.network_target == "baselines.learned.rpmnet.RPMNet"
     assert module.hparams["lr"] == 1e-4 and module.hparams["weight_decay"] == 0 and module.hparams["euler_seq"] == "xyz"

@@ -5,6 +5,7 @@ import torch
 
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
 from src.models.omnet import OMNet
+from registration_helpers import train_losses
 
 torch.manual_seed(0)
 
@@ -95,15 +96,7 @@ def test_shared_weights_have_a_quarter_of_the_parameters():
 def test_training_steps_lower_the_loss_on_a_tiny_batch():
     torch.manual_seed(1)
     model = _small()
-    src, ref, gt = _batch(b=8, n=64)
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(15):
-        optimizer.zero_grad()
-        loss = model.loss(model(src, ref, gt), gt)["loss"]
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
+    losses = train_losses(model, _batch(b=8, n=64), steps=15)
     assert losses[-1] < 0.7 * losses[0]
 
 
