@@ -52,6 +52,15 @@ def train_losses(model: torch.nn.Module, batch, steps: int, lr: float = 1e-3) ->
     return losses
 
 
+def warm_up_batchnorm(model: torch.nn.Module, src: torch.Tensor, ref: torch.Tensor, rounds: int = 40) -> None:
+    """Settle the BatchNorm running statistics of a global-feature network (``model.features``) on the
+    mean-centred clouds: LK runs on them in eval mode, as the official code."""
+    with torch.no_grad():
+        for _ in range(rounds):
+            model.features(ref - ref.mean(1, keepdim=True))
+            model.features(src - src.mean(1, keepdim=True))
+
+
 def reload_via_checkpoint(module, path):
     """Save ``module`` as a Lightning checkpoint at ``path`` and load it back with
     ``RegistrationModule.load_from_checkpoint`` (which rebuilds the network from its config)."""

@@ -6,6 +6,7 @@ import torch
 from baselines.learned.common.global_feature import chamfer_distance
 from baselines.learned.fmr import FMR
 from src.geometry import se3_inverse
+from registration_helpers import warm_up_batchnorm
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import partial_pair_batch as _batch
 
@@ -47,10 +48,7 @@ def test_training_steps_lower_the_loss_on_a_tiny_batch():
     torch.manual_seed(0)
     model = FMR(width=0.125, decoder_points=64)
     src, ref, gt = _batch()
-    with torch.no_grad():
-        for _ in range(40):
-            model.features(ref - ref.mean(1, keepdim=True))
-            model.features(src - src.mean(1, keepdim=True))
+    warm_up_batchnorm(model, src, ref)
 
     def eval_losses():
         model.eval()

@@ -4,6 +4,7 @@ import torch
 
 from baselines.learned.pointnetlk import PointNetLK
 from src.geometry import se3_inverse
+from registration_helpers import warm_up_batchnorm
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import partial_pair_batch as _batch
 
@@ -59,10 +60,7 @@ def test_training_steps_lower_the_loss_on_a_tiny_batch():
     torch.manual_seed(0)
     model = PointNetLK(width=0.125, feature_loss_weight=0.0)
     src, ref, gt = _batch()
-    with torch.no_grad():
-        for _ in range(40):
-            model.features(ref - ref.mean(1, keepdim=True))
-            model.features(src - src.mean(1, keepdim=True))
+    warm_up_batchnorm(model, src, ref)
 
     def eval_loss():
         model.eval()
