@@ -31,6 +31,10 @@ from benchmarks.speed import describe_device, format_rate
 from src.errors import ConfigError, exit_code_of
 
 
+PRECISIONS = ("fp32", "bf16")
+COMPILE_MODES = ("none", "default", "reduce-overhead", "max-autotune")
+
+
 def pair_batch(batch: int, points: int, device: torch.device) -> dict[str, torch.Tensor]:
     """``batch`` pairs of ``points`` points (:func:`baselines.testing.paper_range_pair`) on ``device``."""
     from baselines.testing import paper_range_pair
@@ -83,10 +87,12 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         torch.backends.cudnn.allow_tf32 = args.tf32
     points_list = [int(p) for p in args.points.split(",")]
     rows = []
-    for points, precision, compile_mode in itertools.product(points_list, args.precisions.split(","),
-                                                             args.compile.split(",")):
-        if precision not in ("fp32", "bf16") or compile_mode not in ("none", "default", "reduce-overhead", "max-autotune"):
-            raise ConfigError(f"unknown precision {precision!r} or compile mode {compile_mode!r}")
+    precisions, compile_modes = args.precisions.split(","), args.compile.split(",")
+    for name, values, allowed in (("precision", precisions, PRECISIONS), ("compile mode", compile_modes, COMPILE_MODES)):
+        unknown = [v for v in values if v not in allowed]
+        if unknown:
+            raise ConfigError(f"unknown {name} {unknown[0]!r}: choose from {', '.join(allowed)}")
+    for points, precision, compile_mode in itertools.product(points_list, precisions, compile_modes):
         torch.manual_seed(0)
         network = build_network(args.model, args.model_scale, args.model_overrides).to(device).train()
         step_network = network if compile_mode == "none" else torch.compile(
