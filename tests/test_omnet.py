@@ -132,3 +132,39 @@ def test_fusion_layer_with_global_features_equals_the_concatenated_input(train):
     local, glob = torch.randn(3, 50, 8), torch.randn(3, 32)
     concatenated = torch.cat((local, glob.unsqueeze(1).expand(-1, 50, -1)), dim=-1)
     torch.testing.assert_close(layer.forward_with_global(local, glob), layer(concatenated), rtol=1e-5, atol=1e-5)
+
+
+def _official_fusion(block, local, own, other, mask):
+    """The official dataflow (model/module.py): Encoder masks the 64-d local feature, Fusion runs its three
+    layers unmasked and masks only the output; the decoder runs on that output, its features masked."""
+    m = mask.unsqueeze(-1)
+    n = local.shape[1]
+    x = torch.cat((local * m, own.unsqueeze(1).expand(-1, n, -1), other.unsqueeze(1).expand(-1, n, -1)), dim=-1)
+    for layer in block.fusion:
+        x = layer(x)
+    x = x * m
+    h, inter = x, []
+    for layer in block.decoder:
+        h = layer(h)
+        inter.append(h * m)
+    return x, inter, block.mask_logits(h)
+
+
+@pytest.mark.parametrize("masking", ["official", "every_layer"])
+def test_fusion_masking_follows_the_official_code_by_default(masking):
+    """Per-point layers give the kept points the same values either way in eval mode; the two differ through
+    the training-mode BatchNorm statistics, which include the masked-out points' features."""
+    torch.manual_seed(1)
+    block = _small(fusion_masking=masking).iterations[0].train()
+    b, n = 2, 40
+    local, own, other = torch.randn(b, n, 8), torch.randn(b, 64), torch.randn(b, 64)
+    mask = (torch.rand(b, n) > 0.4).float()
+    got = block.fuse_and_decode(local, own, other, mask)
+    want = _official_fusion(block, local, own, other, mask)
+    close = all(torch.allclose(g, w, atol=1e-5) for g, w in zip([got[0], *got[1], got[2]], [want[0], *want[1], want[2]]))
+    assert close == (masking == "official")
+
+
+def test_unknown_fusion_masking_is_refused():
+    with pytest.raises(ValueError, match="fusion_masking"):
+        OMNet(fusion_masking="some")

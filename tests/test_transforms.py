@@ -45,6 +45,54 @@ def test_ground_truth_maps_source_onto_reference(partial):
     assert (_nn_dist(sample["points_src"], sample["points_ref"]) < 1e-5).mean() < 0.05
 
 
+def _moved_by(partial):
+    """Run a manner's pipeline on an OS pair (no crop differences for 'none') and report which cloud
+    left the canonical frame, with the ground truth and the drawn transform."""
+    shape = _shapes()[4]
+    pipeline = build_pair_transforms("independent_samplings", sampling="os", partial=partial)
+    sample = pipeline({"shape_points": shape}, np.random.default_rng(11))
+    canonical = shape[0]
+    on_canonical = {key: (_nn_dist(sample[key], canonical) < 1e-5).mean() for key in ("points_src", "points_ref")}
+    return sample, on_canonical
+
+
+@pytest.mark.parametrize("partial, moved", [("prnet", "points_ref"), ("rpmnet", "points_src"), ("none", "points_ref")])
+def test_direction_of_each_manner_follows_the_official_code(partial, moved):
+    """Official OMNet code (dataset/transformations.py): class PRNet moves the reference (ref = R·src + t,
+    gt = the drawn transform); RandomTransformSE3_euler (RPMNet manner) moves the source, gt = inverse.
+    DCP (full clouds) moves the target."""
+    sample, on_canonical = _moved_by(partial)
+    still = "points_src" if moved == "points_ref" else "points_ref"
+    assert on_canonical[still] == 1.0 and on_canonical[moved] < 0.05
+    gt = sample["transform_gt"]
+    if moved == "points_ref":  # ref = gt·src with src canonical: gt is the drawn transform
+        drawn = gt
+    else:  # src = T·canonical, ref canonical: gt = T⁻¹
+        drawn = np.linalg.inv(gt)
+    np.testing.assert_allclose(drawn[:3, :3] @ drawn[:3, :3].T, np.eye(3), atol=1e-6)
+    assert np.all(np.abs(drawn[:3, 3]) <= 0.5)
+
+
+@pytest.mark.parametrize("partial, seq, sign", [("prnet", "zyx", 1.0), ("rpmnet", "xyz", -1.0)])
+def test_ground_truth_euler_angles_lie_in_0_45_in_the_manner_metric_convention(partial, seq, sign):
+    """The metric conventions were chosen for the official direction: PRNet's gt = Rx·Ry·Rz reads back as
+    zyx angles in [0°, 45°]; RPMNet's gt = (Rx·Ry·Rz)⁻¹ = Rz(−z)·Ry(−y)·Rx(−x) reads back as xyz angles in [−45°, 0°]."""
+    from scipy.spatial.transform import Rotation
+
+    pipeline = build_pair_transforms("independent_samplings", sampling="os", partial=partial)
+    shape = _shapes(num_shapes=1)[0]
+    angles = np.array(
+        [
+            Rotation.from_matrix(pipeline({"shape_points": shape}, np.random.default_rng(i))["transform_gt"][:3, :3]).as_euler(
+                seq, degrees=True
+            )
+            for i in range(200)
+        ]
+    )
+    assert np.all(sign * angles >= -1e-6) and np.all(sign * angles <= 45 + 1e-6)
+    assert (sign * angles).max() > 40 and (sign * angles).min() < 5  # the whole range is drawn
+
+
 def test_ground_truth_is_exact_without_crop():
     pipeline = build_pair_transforms("independent_samplings", sampling="os", partial="none")
     sample = pipeline({"shape_points": _shapes()[3]}, np.random.default_rng(1))

@@ -100,13 +100,16 @@ class PickPair:
 class RandomRigidTransform:
     """Euler angles uniform in [0, rot_mag] degrees (R = Rx·Ry·Rz), translation uniform in ±trans_mag.
 
-    ``apply_to="src"`` moves the source (the reference stays in the canonical frame), ``"ref"``
-    the reference; ``transform_gt`` is updated so it still maps source to reference.
+    ``apply_to="ref"`` moves the reference (``ref = R·src + t``, ground truth = the drawn transform:
+    the official OMNet code's PRNet manner, ``dataset/transformations.py`` class ``PRNet``, and DCP's
+    ``data.py``); ``"src"`` moves the source and the ground truth is the drawn transform's inverse
+    (RPMNet's ``RandomTransformSE3``, which the official OMNet code uses for its RPMNet manner).
+    ``transform_gt`` always maps source to reference.
     """
 
     rot_mag: float = 45.0
     trans_mag: float = 0.5
-    apply_to: str = "src"
+    apply_to: str = "ref"
 
     def __post_init__(self) -> None:
         if self.apply_to not in ("src", "ref"):
@@ -237,12 +240,19 @@ def build_pair_transforms(
     rpmnet_num_points: int = 1024,
     overlap_ratio: float | None = None,
 ) -> Compose:
-    """The paper's pipelines (supplementary Sec. 2).
+    """The official OMNet code's pipelines (``dataset/transformations.py``, ``fetch_transform``).
 
-    PRNet manner: pick pair → transform applied to Y giving X (the source) → 768-NN crop of one far
-    point → noise → shuffle. RPMNet manner ("opposite to PRNet"): pick pair → independent
-    half-space crops (p_keep) → transform applied to X giving Y (the reference) → resample to
-    ⌈p_keep·1024⌉ = 717 → noise → shuffle.
+    PRNet manner (class ``PRNet``): pick pair → the drawn transform moves the reference
+    (``ref = R·src + t``, ground truth = that transform) → 768-NN crop of one far point, the same
+    point for both clouds in their own frames → noise → shuffle. RPMNet manner
+    (``RandomCrop``, ``RandomTransformSE3_euler``, ``Resampler``): pick pair → independent half-space
+    crops (p_keep) → the drawn transform moves the source (ground truth = its inverse) → resample
+    to ⌈p_keep·1024⌉ = 717 → noise → shuffle. ``none`` (full clouds, DCP's protocol): the transform
+    moves the reference, as DCP's ``data.py`` does.
+
+    The paper's text words the two manners the other way round (supplementary Sec. 2: "transform
+    applied to Y giving X" for PRNet's); the code, which produced the published numbers and for whose
+    direction the metric Euler conventions (zyx / xyz) were chosen, is followed here.
 
     ``overlap_ratio`` (test-time study, PRNet manner only): the crop becomes
     :class:`OverlapRatioCrop` — partial X, then Y = two adjacent parts of the overlapping and
@@ -257,17 +267,17 @@ def build_pair_transforms(
             raise ConfigError(
                 f"data.pair.overlap_ratio is the paper's test protocol for the PRNet manner; got partial={partial!r}"
             )
-        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
+        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="ref")
         crop = OverlapRatioCrop(overlap_ratio, prnet_num_keep)
         return Compose([pick, move, crop, noise, Shuffle()])
     if partial == "prnet":
-        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
+        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="ref")
         steps: list[Transform] = [pick, move, PRNetCrop(prnet_num_keep), noise, Shuffle()]
     elif partial == "rpmnet":
-        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="ref")
+        move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
         steps = [pick, RPMNetCrop(rpmnet_p_keep), move, Resample(rpmnet_num_points, rpmnet_p_keep), noise, Shuffle()]
     else:
-        steps = [pick, RandomRigidTransform(rot_mag, trans_mag, apply_to="src"), noise, Shuffle()]
+        steps = [pick, RandomRigidTransform(rot_mag, trans_mag, apply_to="ref"), noise, Shuffle()]
     return Compose(steps)
 
 

@@ -18,6 +18,7 @@ from torch import Tensor, nn
 from src.geometry import matrix_to_quat, quat_canonical, quat_multiply, quat_normalize, quat_to_matrix, se3_apply, se3_from_rt
 
 MASK_MODES = ("argmax", "topk")
+FUSION_MASKINGS = ("official", "every_layer")
 TRANSLATION_LOSSES = ("squared", "l2")
 
 
@@ -65,10 +66,18 @@ def _masked_max(features: Tensor, mask: Tensor) -> Tensor:
 class OMNetIteration(nn.Module):
     """The networks of one iteration: encoder f, fusion g, mask head h and regressor r."""
 
-    def __init__(self, width: float = 1.0, mask_module: bool = True, fusion: bool = True, connection: bool = True) -> None:
+    def __init__(
+        self,
+        width: float = 1.0,
+        mask_module: bool = True,
+        fusion: bool = True,
+        connection: bool = True,
+        fusion_masking: str = "official",
+    ) -> None:
         super().__init__()
         w = lambda c: max(8, int(round(c * width)))  # noqa: E731 - channel width scaling
         self.mask_module, self.fusion_enabled = mask_module, fusion
+        self.fusion_masking = fusion_masking
         self.connection = connection and mask_module
         self.encoder = _pointwise_stack([3, w(64), w(64), w(64), w(128), w(1024)])
         global_dim, local_dim = w(1024), w(64)
@@ -96,12 +105,21 @@ class OMNetIteration(nn.Module):
         return local, x, _masked_max(x, mask)
 
     def fuse_and_decode(self, local: Tensor, own: Tensor, other: Tensor, mask: Tensor) -> tuple[Tensor, list[Tensor], Tensor | None]:
-        """Fused features g (masked), mask-head intermediates h (masked) and mask logits (B,N,2)."""
+        """Fused features g (masked), mask-head intermediates h (masked) and mask logits (B,N,2).
+
+        ``fusion_masking="official"`` (official code, ``model/module.py`` ``Encoder.forward`` and
+        ``Fusion.forward``): the 64-wide local feature is masked before fusion and only the fusion
+        output is masked. ``"every_layer"``: the local input unmasked, every fusion layer's output masked.
+        """
         m = mask.unsqueeze(-1)
+        every_layer = self.fusion_masking == "every_layer"
+        if not every_layer:
+            local = local * m
         # fusion input: cat(local, own, other) per point, the two global features broadcast
-        x = self.fusion[0].forward_with_global(local, torch.cat((own, other), dim=-1)) * m
+        x = self.fusion[0].forward_with_global(local, torch.cat((own, other), dim=-1))
         for layer in self.fusion[1:]:
-            x = layer(x) * m
+            x = layer(x * m if every_layer else x)
+        x = x * m
         intermediates: list[Tensor] = []
         logits = None
         if self.mask_module:
@@ -150,8 +168,11 @@ class OMNet(nn.Module):
         rot_loss_weight: float = 1.0,
         trans_loss_weight: float = 4.0,
         trans_loss: str = "squared",
+        fusion_masking: str = "official",
     ) -> None:
         super().__init__()
+        if fusion_masking not in FUSION_MASKINGS:
+            raise ValueError(f"fusion_masking must be one of {FUSION_MASKINGS}, got {fusion_masking!r}")
         if mask_mode not in MASK_MODES:
             raise ValueError(f"mask_mode must be one of {MASK_MODES}, got {mask_mode!r}")
         if trans_loss not in TRANSLATION_LOSSES:
@@ -165,7 +186,7 @@ class OMNet(nn.Module):
         self.rot_loss_weight, self.trans_loss_weight, self.trans_loss = rot_loss_weight, trans_loss_weight, trans_loss
         self.register_buffer("mask_class_weights", torch.tensor(mask_class_weights, dtype=torch.float32))
         blocks = 1 if share_weights else num_iters
-        self.iterations = nn.ModuleList(OMNetIteration(width, mask_module, fusion, connection) for _ in range(blocks))
+        self.iterations = nn.ModuleList(OMNetIteration(width, mask_module, fusion, connection, fusion_masking) for _ in range(blocks))
         self.apply(_init_weights)
 
     def block(self, i: int) -> OMNetIteration:
