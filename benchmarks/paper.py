@@ -1,7 +1,7 @@
 """The paper's published numbers, read at run time from tidy CSVs, and matched to ours.
 
 The CSVs (``table,experiment,method,sampling,metric,value``; default folder
-``/work/shared/reference/paper_tables``, or ``$OMNET_PAPER_TABLES``, or ``--paper-dir``) are never
+``../shared/reference/paper_tables`` beside the repository root, or ``$OMNET_PAPER_TABLES``, or ``--paper-dir``) are never
 copied into this repository. Files with other columns (e.g. the speed table) are skipped.
 
 Matching. A row of ours gets the paper's value when its (method, experiment, sampling, partial,
@@ -23,7 +23,9 @@ from typing import Any
 
 import pandas as pd
 
-DEFAULT_PAPER_DIR = Path("/work/shared/reference/paper_tables")
+from src.paths import shared_path
+
+DEFAULT_PAPER_DIR = shared_path("reference", "paper_tables")
 PAPER_COLUMNS = ("table", "experiment", "method", "sampling", "metric", "value")
 KEY = ("method_key", "experiment", "sampling", "partial", "metric")
 

@@ -17,7 +17,7 @@ Layouts (rows: methods; best of ours per column in bold, second underlined):
   rows, separated by rules.
 
 ``--paper`` adds, under each of our rows that the paper reports, a row with the paper's published
-values (read at run time from ``--paper-dir``, default ``/work/shared/reference/paper_tables``;
+values (read at run time from ``--paper-dir``, default ``../shared/reference/paper_tables`` beside the repository root;
 see :mod:`benchmarks.paper` for when a cell counts as the paper's setting) and a row with the ratio
 ours / paper. Those rows are marked ``paper`` and ``ours/paper`` and never take part in the ranking.
 """

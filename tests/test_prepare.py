@@ -11,8 +11,9 @@ from src.data.cache import open_cache
 from src.data.mesh import MeshShape
 from src.data.prepare import build_synthetic_cache, ensure_cache, main, prepare
 from src.errors import DatasetError
+from src.paths import shared_path
 
-AIRPLANE_ZIP = Path("/work/shared/data/modelnet40_normal_resampled_airplane.zip")
+AIRPLANE_ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 
 
 @pytest.fixture(autouse=True)

@@ -11,9 +11,10 @@ from torch.utils.data import DataLoader
 from src.config import register_resolvers
 from src.data.prepare import prepare
 from src.errors import DatasetError
+from src.paths import REPO_ROOT, shared_path
 
-ZIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_normal_resampled_airplane.zip"
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
+CONF = str(REPO_ROOT / "conf")
 pytestmark = pytest.mark.skipif(not ZIP.is_file(), reason=f"{ZIP} not available")
 register_resolvers()
 

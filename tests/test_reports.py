@@ -16,9 +16,10 @@ from benchmarks.latex_check import check_latex, count_columns, tabular_rows, tab
 from benchmarks.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
 from benchmarks.plots import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures
 from benchmarks.tables import build_table, main as tables_main, to_latex, to_markdown
+from src.paths import shared_path
 
 METRICS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "Error(R)", "Error(t)")
-REAL_PAPER_DIR = Path("/work/shared/reference/paper_tables")
+REAL_PAPER_DIR = shared_path("reference", "paper_tables")
 
 
 @pytest.fixture

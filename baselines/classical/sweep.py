@@ -35,8 +35,9 @@ from baselines.base import get_registrator
 from baselines.runner import run_pairs
 from baselines.testing import rotation_error_deg, translation_error
 from src.errors import DatasetError, UserError
+from src.paths import shared_path
 
-DEFAULT_ZIP = Path(__file__).resolve().parents[3] / "shared" / "data" / "modelnet40_normal_resampled_airplane.zip"
+DEFAULT_ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 ROOT = "modelnet40_normal_resampled"
 
 

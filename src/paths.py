@@ -1,0 +1,23 @@
+"""Where the repository and the read-only shared folder are, for every module and test.
+
+The shared folder (the paper, its tables, real data, published weights) lies at ``../shared`` beside
+the repository root, on every machine and in CI; ``$OMNET_SHARED_DIR`` points elsewhere.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_dir() -> Path:
+    """``$OMNET_SHARED_DIR``, else ``<repository root>/../shared``."""
+    env = os.environ.get("OMNET_SHARED_DIR")
+    return Path(env).expanduser() if env else REPO_ROOT.parent / "shared"
+
+
+def shared_path(*parts: str) -> Path:
+    """A path inside the shared folder, e.g. ``shared_path("data", "stanford")``."""
+    return shared_dir().joinpath(*parts)
