@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+import time
 from typing import Any
 
 import lightning as L
@@ -49,3 +50,51 @@ def set_rng_states(state_dict: dict[str, Any]) -> None:
     torch.set_rng_state(state_dict["torch"])
     if "cuda" in state_dict and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state_dict["cuda"])
+
+
+class TrainingClock(L.Callback):
+    """Log the training's cumulative cost as ``time/cpu_hours`` (this process's CPU time: every torch
+    thread and in-process data loading) and ``time/wall_hours``, carried over resumes in the
+    checkpoint, so learning curves can be drawn against compute rather than steps.
+
+    CPU time is the fair axis on a shared machine (wall time stretches with other load); with
+    ``data.num_workers=0`` it includes pair generation.
+    """
+
+    def __init__(self) -> None:
+        self.cpu_seconds = 0.0
+        self.wall_seconds = 0.0
+        self._mark: tuple[float, float] | None = None
+
+    def state_dict(self) -> dict[str, float]:
+        self._tick()
+        return {"cpu_seconds": self.cpu_seconds, "wall_seconds": self.wall_seconds}
+
+    def load_state_dict(self, state_dict: dict[str, float]) -> None:
+        self.cpu_seconds, self.wall_seconds = state_dict["cpu_seconds"], state_dict["wall_seconds"]
+
+    def _tick(self) -> None:
+        now = (time.process_time(), time.perf_counter())
+        if self._mark is not None:
+            self.cpu_seconds += now[0] - self._mark[0]
+            self.wall_seconds += now[1] - self._mark[1]
+        self._mark = now
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._mark = (time.process_time(), time.perf_counter())
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._tick()
+        self._mark = None
+
+    def _log(self, pl_module: L.LightningModule) -> None:
+        self._tick()
+        pl_module.log_dict({"time/cpu_hours": self.cpu_seconds / 3600, "time/wall_hours": self.wall_seconds / 3600})
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if (trainer.global_step % trainer.log_every_n_steps) == 0:
+            self._log(pl_module)
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.sanity_checking and trainer.state.fn == "fit":
+            self._log(pl_module)

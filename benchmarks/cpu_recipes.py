@@ -1,0 +1,209 @@
+"""Accuracy per CPU-hour: OMNet training recipes compared at equal CPU cost on real data.
+
+Each recipe trains OMNet with ``python -m src.train`` on the real-airplane carve-out protocol (TS,
+PRNet manner, noise σ = 0.01, the paper's Gaussian-noise setting) for a budget of CPU time, one
+torch thread, pairs generated in the training process (``num_workers=0``), validating every
+``--val-every`` steps. The budget becomes a step count from a short probe of the recipe's own step
+cost, so schedules that need their length (step decay at 80 %, cosine, one-cycle) know it. Every
+run logs its cumulative CPU time (``src.callbacks.TrainingClock``), and the report draws validation
+Error(R) against CPU hours.
+
+    python -m benchmarks.cpu_recipes run --root RUNS [--recipes base,width_0.5] [--budget-min 30] [--parallel 1]
+    python -m benchmarks.cpu_recipes report --root RUNS --out benchmarks/results
+
+``run`` is resumable: a finished recipe (``done.json``) is skipped, an interrupted one resumes from
+its ``last.ckpt`` (written every few minutes). Keep ``--root`` outside the repository.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pandas as pd
+
+from src.errors import ConfigError, exit_code_of
+
+#: What every recipe shares: the real-airplane protocol with noise, one thread, in-process data.
+COMMON = [
+    "+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noise_sigma=0.01",
+    "trainer.accelerator=cpu", "data.num_workers=0", "data.persistent_workers=false", "data.pin_memory=false",
+    "data.eval_batch_size=50", "trainer.check_val_every_n_epoch=null", "trainer.log_every_n_steps=20",
+    "trainer.enable_progress_bar=false", "test_after_fit=false", "+callbacks.clock._target_=src.callbacks.TrainingClock",
+    "callbacks.periodic_checkpoint.train_time_interval.minutes=5",
+]
+
+#: One factor at a time from ``base`` (width 0.25, per-iteration weights, batch 16, Adam 1e-3 with a
+#: ×0.1 step at 80 % of the steps). ``{steps}`` and ``{milestone}`` are filled from the budget.
+RECIPES: dict[str, dict] = {
+    "base": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=1e-3"]},
+    "width_0.5": {"model_scale": 0.5, "batch": 16, "overrides": ["model.lr=1e-3"]},
+    "shared_weights": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=1e-3", "model.network.share_weights=true"]},
+    "batch_8": {"model_scale": 0.25, "batch": 8, "overrides": ["model.lr=1e-3"]},
+    "batch_32": {"model_scale": 0.25, "batch": 32, "overrides": ["model.lr=1e-3"]},
+    "lr_3e-3": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=3e-3"]},
+}
+STEP_DECAY = ["model.lr_milestones=[{milestone}]", "model.lr_gamma=0.1"]
+
+
+def probe_step_seconds(recipe: dict, points: int = 768, steps: int = 3) -> float:
+    """CPU seconds of one training step of the recipe's network (one thread; fresh weights)."""
+    import torch
+
+    from benchmarks.train_step import build_network, pair_batch
+
+    torch.set_num_threads(1)
+    overrides = [o for o in recipe["overrides"] if o.startswith("model.network.")]
+    network = build_network("omnet", recipe["model_scale"], overrides).train()
+    batch = pair_batch(recipe["batch"], points, torch.device("cpu"))
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
+
+    def step() -> None:
+        optimizer.zero_grad(set_to_none=True)
+        outputs = network(batch["points_src"], batch["points_ref"], batch["transform_gt"])
+        network.loss(outputs, batch["transform_gt"])["loss"].backward()
+        optimizer.step()
+
+    step()  # warm-up
+    start = time.process_time()
+    for _ in range(steps):
+        step()
+    return (time.process_time() - start) / steps
+
+
+def recipe_command(name: str, recipe: dict, run_dir: Path, max_steps: int, val_every: int) -> list[str]:
+    """The ``src.train`` command line of one recipe (resuming from ``last.ckpt`` when there is one)."""
+    milestone = max(1, int(0.8 * max_steps))
+    schedule = [o.format(milestone=milestone, steps=max_steps) for o in recipe.get("schedule", STEP_DECAY)]
+    command = [sys.executable, "-m", "src.train", *COMMON, f"model_scale={recipe['model_scale']}",
+               f"data.batch_size={recipe['batch']}", f"trainer.max_steps={max_steps}",
+               f"trainer.val_check_interval={val_every}", *recipe["overrides"], *schedule,
+               f"task_name=cpu_recipe_{name}", f"hydra.run.dir={run_dir}"]
+    last = run_dir / "checkpoints" / "last.ckpt"
+    return command + ([f"ckpt_path={last}"] if last.is_file() else [])
+
+
+def run_recipe(name: str, root: Path, budget_min: float, val_every: int) -> str:
+    """Train one recipe to its budget (or resume it); returns a one-line status."""
+    recipe = RECIPES[name]
+    run_dir = root / name
+    done = run_dir / "done.json"
+    if done.is_file():
+        return f"{name}: done earlier"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    plan_file = run_dir / "plan.json"
+    if plan_file.is_file():
+        plan = json.loads(plan_file.read_text())
+    else:
+        step_s = probe_step_seconds(recipe)
+        plan = {"recipe": recipe, "budget_cpu_min": budget_min, "probe_step_cpu_s": step_s,
+                "max_steps": max(val_every, int(budget_min * 60 / step_s))}
+        plan_file.write_text(json.dumps(plan, indent=2))
+    command = recipe_command(name, recipe, run_dir, plan["max_steps"], val_every)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    with open(run_dir / "train.log", "a") as log:
+        log.write(f"\n$ {' '.join(command)}\n")
+        log.flush()
+        code = subprocess.call(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    if code != 0:
+        return f"{name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
+    done.write_text(json.dumps({**plan, "command": " ".join(command[1:])}, indent=2))
+    return f"{name}: finished {plan['max_steps']} steps"
+
+
+def curves(root: Path) -> pd.DataFrame:
+    """Validation rows of every recipe: recipe, step, cpu_hours, Error(R), Error(t)."""
+    from src.runtime import read_csv_logs
+
+    frames = []
+    for run_dir in sorted(p for p in root.iterdir() if (p / "plan.json").is_file()):
+        logs = read_csv_logs(run_dir)
+        if logs.empty or "val/Error(R)" not in logs:
+            continue
+        val = logs.dropna(subset=["val/Error(R)"])[["step", "time/cpu_hours", "val/Error(R)", "val/Error(t)"]]
+        frames.append(val.assign(recipe=run_dir.name))
+    if not frames:
+        raise ConfigError(f"no recipe run with validation results under {root}: run `python -m benchmarks.cpu_recipes run` first")
+    frame = pd.concat(frames, ignore_index=True)
+    return frame.rename(columns={"time/cpu_hours": "cpu_hours", "val/Error(R)": "Error(R)", "val/Error(t)": "Error(t)"})
+
+
+def summary(frame: pd.DataFrame) -> pd.DataFrame:
+    """Per recipe: steps and CPU hours run, the last and the best validation Error(R)/Error(t)."""
+    rows = []
+    for name, group in frame.groupby("recipe", sort=False):
+        group = group.sort_values("step")
+        best = group.loc[group["Error(R)"].idxmin()]
+        rows.append({"recipe": name, "steps": int(group["step"].max()) + 1, "CPU h": group["cpu_hours"].max(),
+                     "last Error(R)": group["Error(R)"].iloc[-1], "last Error(t)": group["Error(t)"].iloc[-1],
+                     "best Error(R)": best["Error(R)"], "best at CPU h": best["cpu_hours"]})
+    return pd.DataFrame(rows).sort_values("last Error(R)")
+
+
+def report(root: Path, out: Path) -> list[Path]:
+    """``cpu_recipes.csv`` (the curves), ``cpu_recipes.md`` (summary) and ``cpu_recipes.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frame = curves(root)
+    out.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out / "cpu_recipes.csv", index=False)
+    table = summary(frame)
+    (out / "cpu_recipes_summary.md").write_text(table.to_markdown(index=False, floatfmt=".3f") + "\n")
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name, group in frame.groupby("recipe", sort=False):
+        group = group.sort_values("step")
+        ax.plot(group["cpu_hours"], group["Error(R)"], marker="o", markersize=2.5, label=name)
+    ax.set(xlabel="CPU hours (one thread)", ylabel="validation Error(R) [deg]", yscale="log",
+           title="OMNet recipes on real airplanes (TS, PRNet manner, σ = 0.01)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "cpu_recipes.png", dpi=110)
+    plt.close(fig)
+    return [out / "cpu_recipes.csv", out / "cpu_recipes_summary.md", out / "cpu_recipes.png"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="train the recipes (resumable)")
+    run.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
+    run.add_argument("--recipes", default=",".join(RECIPES), help=f"comma-separated, of: {', '.join(RECIPES)}")
+    run.add_argument("--budget-min", type=float, default=30.0, help="CPU minutes per recipe (default 30)")
+    run.add_argument("--val-every", type=int, default=100, help="steps between validations (default 100)")
+    run.add_argument("--parallel", type=int, default=1, help="recipes trained at once, one thread each (default 1)")
+    rep = sub.add_parser("report", help="curves, summary table and plot")
+    rep.add_argument("--root", type=Path, required=True)
+    rep.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    args = parser.parse_args(argv)
+
+    def action() -> None:
+        if args.command == "report":
+            for path in report(args.root, args.out):
+                print(f"wrote {path}")
+            return
+        names = [n.strip() for n in args.recipes.split(",") if n.strip()]
+        unknown = sorted(set(names) - set(RECIPES))
+        if unknown:
+            raise ConfigError(f"unknown recipes {unknown}; known: {', '.join(RECIPES)}")
+        if not math.isfinite(args.budget_min) or args.budget_min <= 0:
+            raise ConfigError(f"--budget-min must be positive, got {args.budget_min}")
+        with ThreadPoolExecutor(max_workers=max(1, args.parallel)) as pool:
+            for status in pool.map(lambda n: run_recipe(n, args.root, args.budget_min, args.val_every), names):
+                print(status, flush=True)
+
+    return exit_code_of(action)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
