@@ -48,15 +48,21 @@ def test_accumulates_sums_not_mean_of_means():
 
 
 def test_xyz_convention_differs_from_zyx():
-    gt = _transform([0.0, 0, 0], [0, 0, 0], "xyz").unsqueeze(0)
-    pred = _transform([0.0, 0, 4.0], [0, 0, 0], "xyz").unsqueeze(0)  # 4 degrees about z
+    """A three-axis rotation reads as different Euler angles in the two conventions: the metric must use
+    the one it is given (a one-axis rotation would not tell them apart)."""
+    from scipy.spatial.transform import Rotation
+
+    angles = [30.0, 20.0, 10.0]
+    gt = torch.eye(4, dtype=torch.float64).unsqueeze(0)
+    pred = _transform(angles, [0, 0, 0], "xyz").unsqueeze(0)
     points = torch.zeros(1, 2, 3)
     xyz, zyx = RegistrationMetrics("xyz"), RegistrationMetrics("zyx")
     xyz.update(pred, gt, points, points)
     zyx.update(pred, gt, points, points)
-    assert xyz.compute()["MAE(R)"] == pytest.approx(4 / 3)
-    assert zyx.compute()["MAE(R)"] == pytest.approx(4 / 3)  # single-axis: same magnitude, other slot
-    assert xyz.sq_euler == pytest.approx(zyx.sq_euler)
+    zyx_angles = Rotation.from_matrix(pred[0, :3, :3].numpy()).as_euler("zyx", degrees=True)
+    assert xyz.compute()["MAE(R)"] == pytest.approx(sum(angles) / 3)
+    assert zyx.compute()["MAE(R)"] == pytest.approx(abs(zyx_angles).sum() / 3)
+    assert abs(xyz.compute()["MAE(R)"] - zyx.compute()["MAE(R)"]) > 0.5
 
 
 def test_chamfer_hand_computed():
