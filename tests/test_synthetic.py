@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from src.data import synthetic
 from src.data.categories import AXISYMMETRIC_CATEGORIES
 from src.data.mesh import MeshShape
-from src.data.sampling import normalize_mesh, sample_surface
+from src.data.sampling import normalize_mesh, sample_shape, sample_surface
 from src.data.synthetic import SYNTHETIC_CATEGORIES, SYNTHETIC_HALVES, generate_shapes
 from src.errors import ConfigError
 
@@ -127,3 +127,17 @@ def test_no_category_is_axisymmetric(shapes: list[MeshShape]) -> None:
         if s.split == "train" and int(s.name[-4:]) < 3:
             turned, isotropy = _rotational_symmetry(s.vertices, s.faces)
             assert turned > 1.3 and isotropy < 0.9, (s.name, turned, isotropy)
+
+
+def test_sampled_face_normals_are_unit_and_point_outwards(shapes: list[MeshShape]) -> None:
+    """The normals the generator's meshes give their samplings (``sample_shape``, what a cache with
+    normals stores) point out of the solid: by the divergence theorem the surface mean of n·p is
+    3·volume/area > 0 (inward normals would give its negative)."""
+    for index, s in enumerate(s for s in shapes if s.name.endswith("test_0000")):
+        points, normals = sample_shape(s, 1, 20000, seed=0, shape_index=index)
+        np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-6)
+        corners = normalize_mesh(s.vertices)[s.faces]
+        volume = np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() / 6
+        area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum() / 2
+        flux = np.einsum("ij,ij->i", points[0], normals[0])
+        assert abs(flux.mean() - 3 * volume / area) < 5 * flux.std() / np.sqrt(flux.size), s.name

@@ -4,11 +4,18 @@
 Network (paper §4 and the official code, github.com/yewzijian/RPMNet, ``RPMNetEarlyFusion`` with the
 defaults of ``arguments.py``):
 
-* normals: the batch carries none, so they are estimated from the points the network receives
-  (after cropping / resampling / noise), as OMNet §4.2 states for its retraining: PCA of the
-  ``normals_k`` = 30 nearest neighbours, signed away from the cloud's centroid
-  (:func:`~baselines.learned.common.correspondence.estimate_normals`; the same rule as this
-  project's FGR baseline). The source normals are then rotated with each iteration's estimate;
+* normals (``normals``): ``"estimated"`` (default, the OMNet paper's protocol, §4.2: "normals computed
+  after pre-processing") estimates them from the points the network receives (after cropping /
+  resampling / noise): PCA of the ``normals_k`` = 30 nearest neighbours, signed away from the cloud's
+  centroid (``normal_orientation="centroid"``;
+  :func:`~baselines.learned.common.correspondence.estimate_normals`, the same rule as this project's
+  FGR baseline). ``"given"`` (RPMNet's own code: ``src/models/rpmnet.py`` l. 177-178 reads them
+  from channels 3:6 of its inputs, ``src/data_loader/transforms.py`` l. 204-208 rotates them with
+  the points) takes ``normals_src``/``normals_ref`` from the batch (``data.normals=cache``) with the
+  dataset's own sign (the CAD model's face orientation, as the files store it; not re-signed). The
+  PPF angles depend on the sign, so a network is evaluated with the convention it was trained with
+  (the checkpoint records it). The source normals are rotated with each iteration's estimate
+  (official l. 200);
 * parameter prediction: PointNet on both clouds concatenated with a fourth coordinate 0 (source) /
   1 (reference): 4-64-64-64-128-1024 (GroupNorm 8/…/16 + ReLU), max-pool, 1024-512-256 (GroupNorm 16
   + ReLU), then 2 outputs → β = softplus, α = softplus;
@@ -26,10 +33,10 @@ mean |T_i(x) − T_gt(x)| over the source points (L1, "mae"; ``loss_type="mse"``
 + 0.01·[mean(1 − column sums) + mean(1 − row sums)] of the match matrix (inlier term).
 Optimiser (official ``train.py``): Adam, lr 1e-4, no weight decay, no schedule, batch 8 (crop).
 
-Deviations: normals estimated rather than taken from the dataset (see above, per the OMNet paper);
-channel-last Linear layers instead of 1×1 convolutions; the reference features are computed once
-and reused by every iteration (the code recomputes them from the same unchanged input: with
-GroupNorm the result is identical); Procrustes in float64 with a sign(det) reflection fix;
+Deviations: by default normals estimated rather than taken from the dataset (see above, per the
+OMNet paper); channel-last Linear layers instead of 1×1 convolutions; the reference features are
+computed once and reused by every iteration (the code recomputes them from the same unchanged
+input: with GroupNorm the result is identical); Procrustes in float64 with a sign(det) reflection fix;
 ``width`` scales the hidden channel counts (rounded to multiples of the GroupNorm groups; 1.0 = paper).
 """
 
@@ -47,11 +54,13 @@ from baselines.learned.common.correspondence import (
     sinkhorn,
     soft_correspondence_svd,
 )
+from src.errors import ConfigError, PointCloudError
 from src.geometry import se3_apply
 
 FEATURES = ("xyz", "dxyz", "ppf")  # the official concatenation order
 FEATURE_SIZES = {"xyz": 3, "dxyz": 3, "ppf": 4}
 LOSS_TYPES = ("mae", "mse")
+NORMALS = ("estimated", "given")
 
 
 class ParameterPrediction(nn.Module):
@@ -98,7 +107,7 @@ class FeatureExtraction(nn.Module):
 
 
 class RPMNet(nn.Module):
-    """RPM-Net (early fusion) with normals estimated from its input points."""
+    """RPM-Net (early fusion) with normals estimated from its input points or given with them."""
 
     def __init__(
         self,
@@ -112,6 +121,7 @@ class RPMNet(nn.Module):
         num_neighbors: int = 64,
         normals_k: int = 30,
         normal_orientation: str = "centroid",
+        normals: str = "estimated",
         loss_type: str = "mae",
         inlier_weight: float = 0.01,
         discount: float = 0.5,
@@ -122,15 +132,24 @@ class RPMNet(nn.Module):
             raise ValueError(f"loss_type must be one of {LOSS_TYPES}, got {loss_type!r}")
         if min(num_iters, num_train_iters) < 1:
             raise ValueError("num_iters and num_train_iters must be >= 1")
+        if normals not in NORMALS:
+            raise ConfigError(f"model.network.normals must be one of {NORMALS}, got {normals!r}")
         self.num_iters, self.num_train_iters, self.num_sk_iter, self.slack = num_iters, num_train_iters, num_sk_iter, slack
-        self.normals_k, self.normal_orientation = normals_k, normal_orientation
+        self.normals_k, self.normal_orientation, self.normals = normals_k, normal_orientation, normals
         self.loss_type, self.inlier_weight, self.discount = loss_type, inlier_weight, discount
         self.weights_net = ParameterPrediction(width)
         self.feat_extractor = FeatureExtraction(tuple(features), scaled(feat_dim, width, 8), radius, num_neighbors)
 
-    def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:
-        normals_src = estimate_normals(points_src, self.normals_k, self.normal_orientation)
-        normals_ref = estimate_normals(points_ref, self.normals_k, self.normal_orientation)
+    @property
+    def uses_normals(self) -> bool:
+        """Whether :meth:`forward` needs ``normals_src``/``normals_ref`` (``normals="given"``)."""
+        return self.normals == "given"
+
+    def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None,
+                normals_src: Tensor | None = None, normals_ref: Tensor | None = None) -> dict:
+        """Normals (B, N, 3) / (B, M, 3) are used with ``normals="given"`` (required then), else ignored."""
+        normals_src = self._normals(points_src, normals_src, "normals_src")
+        normals_ref = self._normals(points_ref, normals_ref, "normals_ref")
         feat_ref = self.feat_extractor(points_ref, normals_ref)
         src_t, normals_src_t = points_src, normals_src
         out: dict[str, list | Tensor] = {"transforms": [], "row_sums": [], "col_sums": [], "betas": [], "alphas": [],
@@ -153,6 +172,19 @@ class RPMNet(nn.Module):
             out["betas"].append(beta.detach())
             out["alphas"].append(alpha.detach())
         return out
+
+    def _normals(self, points: Tensor, given: Tensor | None, name: str) -> Tensor:
+        """The normals the features use: ``given`` (``normals="given"``) or estimated from ``points``."""
+        if not self.uses_normals:
+            return estimate_normals(points, self.normals_k, self.normal_orientation)
+        if given is None:
+            raise ConfigError(
+                f"RPMNet has model.network.normals=given but got no {name}: use a dataset with normals "
+                "(data.normals=cache, e.g. data=modelnet40_resampled) or model.network.normals=estimated"
+            )
+        if given.shape != points.shape:
+            raise PointCloudError(f"{name} has shape {tuple(given.shape)}, its points {tuple(points.shape)}")
+        return given.to(points.dtype)
 
     def loss(self, outputs: dict, transform_gt: Tensor) -> dict[str, Tensor]:
         src = outputs["points_src"]

@@ -11,14 +11,17 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from src.data.cache import Cache, default_cache_root
+from src.data.cache import Cache, CacheSplit, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
 from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
 from src.data.transforms import build_pair_transforms
-from src.errors import ConfigError
+from src.errors import ConfigError, DatasetError
 
 STAGES = ("train", "val", "test")
+NORMALS = ("none", "cache")
+"""``data.normals``: ``none`` (points only) or ``cache`` (the cache's normals travel with the points
+as ``normals_src``/``normals_ref``; see :mod:`src.data.transforms`)."""
 
 
 def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmetric: bool) -> list[str]:
@@ -62,7 +65,8 @@ class RegistrationDataModule(L.LightningDataModule):
     """Train/val/test pair loaders for one experiment.
 
     ``splits`` maps each stage to ``{split, categories, slice}``; ``pair`` holds the pair-transform
-    parameters (:func:`~src.data.transforms.build_pair_transforms`).
+    parameters (:func:`~src.data.transforms.build_pair_transforms`); ``normals`` is one of
+    :data:`NORMALS`.
     """
 
     def __init__(
@@ -79,9 +83,12 @@ class RegistrationDataModule(L.LightningDataModule):
         persistent_workers: bool = True,
         seed: int = 1234,
         build: Mapping[str, Any] | None = None,
+        normals: str = "none",
     ) -> None:
         super().__init__()
-        self.dataset = dataset
+        if normals not in NORMALS:
+            raise ConfigError(f"data.normals must be one of {NORMALS}, got {normals!r}")
+        self.dataset, self.normals = dataset, normals
         self.cache_root = Path(cache_root).expanduser() if cache_root else default_cache_root()
         self.splits = {k: dict(v) for k, v in (splits or {}).items()}
         unknown = set(self.splits) - set(STAGES)
@@ -110,7 +117,20 @@ class RegistrationDataModule(L.LightningDataModule):
             split, indices = select_shapes(self.cache, self.splits[name], self.remove_axisymmetric)
             data = self.cache.split(split)
             stream = TRAIN_STREAM if name == "train" else EVAL_STREAM
-            self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream)
+            self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream,
+                                              normals=self._normals_of(data))
+
+    def _normals_of(self, data: CacheSplit) -> np.ndarray | None:
+        """The split's normals when ``data.normals=cache`` (DatasetError if the cache has none)."""
+        if self.normals == "none":
+            return None
+        if data.normals is None:
+            raise DatasetError(
+                f"data.normals=cache, but the {self.dataset} cache stores no normals for split {data.name!r} (mesh "
+                "samplings keep none; the PointNet++ resampled layout has them): use data.normals=none "
+                "(RPMNet: model.network.normals=estimated)"
+            )
+        return data.normals
 
     def _loader_options(self) -> dict[str, Any]:
         return {"num_workers": self.num_workers, "pin_memory": self.pin_memory,

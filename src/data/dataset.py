@@ -10,7 +10,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import Dataset, Sampler
 
-from src.data.transforms import Compose
+from src.data.transforms import CLOUDS, Compose
 from src.errors import ConfigError, PointCloudError
 
 TRAIN_STREAM, EVAL_STREAM = 1, 0
@@ -27,6 +27,10 @@ def check_point_cloud(points: np.ndarray | torch.Tensor, name: str) -> None:
         raise PointCloudError(f"{name} contains NaN or inf values: rebuild the cache with `python -m src.data.prepare`")
 
 
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+
+
 class PairDataset(Dataset):
     """One registration pair per index.
 
@@ -34,6 +38,10 @@ class PairDataset(Dataset):
     ``default_rng([seed, stream, k])``. Evaluation uses ``k < len(self)`` (a fixed set); training
     uses the virtual indices ``epoch * len(self) + i`` of :class:`EpochSampler`, so every epoch
     draws new pairs yet any run, worker count or resume reproduces them.
+
+    With ``normals`` (the split's ``(N, S, P, 3)`` array) every item also holds ``normals_src`` and
+    ``normals_ref``, unit, row for row with the points (see :mod:`src.data.transforms`); the points
+    and ground truth are the same as without them.
     """
 
     def __init__(
@@ -44,10 +52,13 @@ class PairDataset(Dataset):
         transforms: Compose,
         seed: int,
         stream: int = EVAL_STREAM,
+        normals: np.ndarray | None = None,
     ) -> None:
         if len(shape_indices) == 0:
             raise PointCloudError("the selected split has no shapes: check data.splits (categories, slice)")
-        self.points, self.labels = points, labels
+        if normals is not None and normals.shape != points.shape:
+            raise PointCloudError(f"normals of shape {normals.shape} do not match the points' {points.shape}")
+        self.points, self.normals, self.labels = points, normals, labels
         self.shape_indices = np.asarray(shape_indices)
         self.transforms, self.seed, self.stream = transforms, seed, stream
 
@@ -57,12 +68,16 @@ class PairDataset(Dataset):
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         shape = int(self.shape_indices[index % len(self)])
         rng = np.random.default_rng([self.seed, self.stream, int(index)])
-        sample = self.transforms({"shape_points": self.points[shape]}, rng)
-        for key in ("points_src", "points_ref"):
-            check_point_cloud(sample[key], key)
+        start = {"shape_points": self.points[shape]}
+        if self.normals is not None:
+            start["shape_normals"] = self.normals[shape]
+        sample = self.transforms(start, rng)
+        kinds = ("points",) if self.normals is None else ("points", "normals")
+        item = {f"{kind}_{cloud}": sample[f"{kind}_{cloud}"] for kind in kinds for cloud in CLOUDS}
+        for key, array in item.items():
+            check_point_cloud(array, key)
         return {
-            "points_src": torch.from_numpy(np.ascontiguousarray(sample["points_src"], dtype=np.float32)),
-            "points_ref": torch.from_numpy(np.ascontiguousarray(sample["points_ref"], dtype=np.float32)),
+            **{key: _tensor(array) for key, array in item.items()},
             "transform_gt": torch.from_numpy(sample["transform_gt"].astype(np.float32)),
             "label": torch.tensor(int(self.labels[shape])),
             "idx": torch.tensor(int(index)),

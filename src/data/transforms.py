@@ -5,6 +5,13 @@ Every transform is ``transform(sample, rng) -> sample`` where ``rng`` is the sam
 any worker count or order. A sample starts as ``{"shape_points": (S, P, 3), ...}`` and ends with
 ``points_src`` (N, 3), ``points_ref`` (M, 3) and ``transform_gt`` (4, 4), the source→reference
 transform (``ref ≈ R @ src + t``).
+
+Normals are optional: a sample that starts with ``"shape_normals"`` (S, P, 3) ends with unit
+``normals_src`` (N, 3) and ``normals_ref`` (M, 3), row ``i`` the normal of point ``i``. They are
+rotated with their cloud and cropped, resampled and shuffled with it; noise moves points only (as
+RPMNet's ``src/data_loader/transforms.py`` does, l. 204-208 and 106-110, and the official OMNet
+code's ``dataset/transformations.py``, l. 241-244, 343-346 and 140-143). Normals draw no random
+numbers, so the points and ground truth of a pair are the same with or without them.
 """
 
 from __future__ import annotations
@@ -25,10 +32,34 @@ Transform = Callable[[Sample, np.random.Generator], Sample]
 SAMPLINGS = ("os", "ts")
 PARTIAL_MANNERS = ("prnet", "rpmnet", "none")
 PAIR_SAMPLINGS = ("independent_samplings", "single_sampling", "disjoint_subsets")
+CLOUDS = ("src", "ref")
 
 
 def _rigid(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return (points @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
+
+
+def _move(sample: Sample, cloud: str, transform: np.ndarray) -> None:
+    """Apply a rigid transform to one cloud: its points, and its normals (rotation only) if any."""
+    sample[f"points_{cloud}"] = _rigid(sample[f"points_{cloud}"], transform)
+    if f"normals_{cloud}" in sample:
+        sample[f"normals_{cloud}"] = (sample[f"normals_{cloud}"] @ transform[:3, :3].T).astype(np.float32)
+
+
+def _take(sample: Sample, cloud: str, index: np.ndarray) -> None:
+    """Keep rows ``index`` (indices or a mask) of one cloud: its points, and its normals if any."""
+    for key in (f"points_{cloud}", f"normals_{cloud}"):
+        if key in sample:
+            sample[key] = sample[key][index]
+
+
+def _unit(normals: np.ndarray) -> np.ndarray:
+    """Rows scaled to unit length, float32 (PointNet++'s resampled files hold a few (1, 1, 1) rows)."""
+    normals = np.asarray(normals, dtype=np.float32)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    if not np.all(length > 0):
+        raise DatasetError("the cache holds zero-length or NaN normals: rebuild it with `python -m src.data.prepare`")
+    return normals / length
 
 
 def _inverse(transform: np.ndarray) -> np.ndarray:
@@ -57,6 +88,7 @@ class PickPair:
     ``ts`` (twice-sampled): two different samplings of the CAD model (``independent_samplings``),
     or two disjoint random subsets of its dense points (``disjoint_subsets``, the closest offline
     equivalent for the PointNet++ resampled layout). ``os`` (once-sampled): one sampling for both.
+    The optional ``shape_normals`` are picked with the same rows and made unit length.
     """
 
     sampling: str
@@ -76,24 +108,25 @@ class PickPair:
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         shape = sample.pop("shape_points")
-        if self.pair_sampling == "disjoint_subsets":
-            dense = shape[0]
-            needed = self.num_points * (2 if self.sampling == "ts" else 1)
-            if dense.shape[0] < needed:
-                raise DatasetError(f"shape has {dense.shape[0]} points, {needed} needed for {self.sampling} pairs")
-            perm = rng.permutation(dense.shape[0])[:needed]
-            src = dense[np.sort(perm[: self.num_points])]
-            ref = dense[np.sort(perm[-self.num_points :])]
-        else:
-            if self.sampling == "ts":
-                i, j = rng.choice(shape.shape[0], size=2, replace=False)
-            else:
-                i = j = 0
-            src, ref = shape[i], shape[j]
-        sample["points_src"] = np.array(src, dtype=np.float32)
-        sample["points_ref"] = np.array(ref, dtype=np.float32)
+        normals = sample.pop("shape_normals", None)
+        for cloud, (sampling, rows) in zip(CLOUDS, self._rows(shape, rng)):
+            sample[f"points_{cloud}"] = np.array(shape[sampling][rows], dtype=np.float32)
+            if normals is not None:
+                sample[f"normals_{cloud}"] = _unit(normals[sampling][rows])
         sample["transform_gt"] = np.eye(4)
         return sample
+
+    def _rows(self, shape: np.ndarray, rng: np.random.Generator) -> list[tuple[int, np.ndarray | slice]]:
+        """(sampling index, rows) of the source, then of the reference."""
+        if self.pair_sampling == "disjoint_subsets":
+            dense = shape.shape[1]
+            needed = self.num_points * (2 if self.sampling == "ts" else 1)
+            if dense < needed:
+                raise DatasetError(f"shape has {dense} points, {needed} needed for {self.sampling} pairs")
+            perm = rng.permutation(dense)[:needed]
+            return [(0, np.sort(perm[: self.num_points])), (0, np.sort(perm[-self.num_points :]))]
+        i, j = rng.choice(shape.shape[0], size=2, replace=False) if self.sampling == "ts" else (0, 0)
+        return [(i, slice(None)), (j, slice(None))]
 
 
 @dataclass
@@ -104,7 +137,7 @@ class RandomRigidTransform:
     the official OMNet code's PRNet manner, ``dataset/transformations.py`` class ``PRNet``, and DCP's
     ``data.py``); ``"src"`` moves the source and the ground truth is the drawn transform's inverse
     (RPMNet's ``RandomTransformSE3``, which the official OMNet code uses for its RPMNet manner).
-    ``transform_gt`` always maps source to reference.
+    ``transform_gt`` always maps source to reference. The moved cloud's normals are rotated by R.
     """
 
     rot_mag: float = 45.0
@@ -124,11 +157,10 @@ class RandomRigidTransform:
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         transform = self.sample_transform(rng)
+        _move(sample, self.apply_to, transform)
         if self.apply_to == "src":
-            sample["points_src"] = _rigid(sample["points_src"], transform)
             sample["transform_gt"] = sample["transform_gt"] @ _inverse(transform)
         else:
-            sample["points_ref"] = _rigid(sample["points_ref"], transform)
             sample["transform_gt"] = transform @ sample["transform_gt"]
         return sample
 
@@ -145,11 +177,11 @@ class PRNetCrop:
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         far = rng.random(3) + 500.0 * rng.choice([1.0, -1.0])
-        for key in ("points_src", "points_ref"):
-            points = sample[key]
+        for cloud in CLOUDS:
+            points = sample[f"points_{cloud}"]
             if points.shape[0] < self.num_keep:
-                raise DatasetError(f"{key} has {points.shape[0]} points, PRNet crop keeps {self.num_keep}")
-            sample[key] = points[np.sort(nearest_indices(points, far, self.num_keep))]
+                raise DatasetError(f"points_{cloud} has {points.shape[0]} points, PRNet crop keeps {self.num_keep}")
+            _take(sample, cloud, np.sort(nearest_indices(points, far, self.num_keep)))
         return sample
 
 
@@ -169,13 +201,12 @@ class RPMNetCrop:
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         if self.p_keep >= 1.0:
             return sample
-        for key in ("points_src", "points_ref"):
-            points = sample[key]
+        for cloud in CLOUDS:
+            points = sample[f"points_{cloud}"]
             direction = rng.normal(size=3)
             direction /= np.linalg.norm(direction)
             dist = (points - points.mean(axis=0)) @ direction
-            keep = dist > np.percentile(dist, (1.0 - self.p_keep) * 100)
-            sample[key] = points[keep]
+            _take(sample, cloud, dist > np.percentile(dist, (1.0 - self.p_keep) * 100))
         return sample
 
 
@@ -192,17 +223,16 @@ class Resample:
         return math.ceil(self.p_keep * self.num_points)
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
-        for key in ("points_src", "points_ref"):
-            points = sample[key]
-            replace = points.shape[0] < self.target
-            idx = rng.choice(points.shape[0], size=self.target, replace=replace)
-            sample[key] = points[idx]
+        for cloud in CLOUDS:
+            size = sample[f"points_{cloud}"].shape[0]
+            _take(sample, cloud, rng.choice(size, size=self.target, replace=size < self.target))
         return sample
 
 
 @dataclass
 class GaussianNoise:
-    """Add N(0, sigma²) noise clipped to ±clip to every coordinate of both clouds."""
+    """Add N(0, sigma²) noise clipped to ±clip to every coordinate of both clouds (points only:
+    normals stay as they are, as RPMNet's and OMNet's ``RandomJitter``)."""
 
     sigma: float = 0.01
     clip: float = 0.05
@@ -218,11 +248,11 @@ class GaussianNoise:
 
 @dataclass
 class Shuffle:
-    """Permute the points of each cloud independently."""
+    """Permute the points (and normals) of each cloud independently."""
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
-        for key in ("points_src", "points_ref"):
-            sample[key] = sample[key][rng.permutation(sample[key].shape[0])]
+        for cloud in CLOUDS:
+            _take(sample, cloud, rng.permutation(sample[f"points_{cloud}"].shape[0]))
         return sample
 
 
@@ -343,7 +373,6 @@ class OverlapRatioCrop:
                 raise DatasetError(f"{key} has {points.shape[0]} points, the overlap-ratio crop keeps {self.num_keep}")
         far = rng.random(3) + 500.0 * rng.choice([1.0, -1.0])
         dist, idx = cKDTree(src).query(far, k=self.num_keep)
-        partial_src = src[np.sort(np.atleast_1d(idx))]
         gt = np.asarray(sample["transform_gt"], dtype=np.float64)
         far_ref = gt[:3, :3] @ far + gt[:3, 3]  # float64: distances of ~500 must stay exact to ~1e-7
         inside = np.linalg.norm(ref.astype(np.float64) - far_ref, axis=1) <= float(np.max(dist)) + 1e-6
@@ -367,6 +396,6 @@ class OverlapRatioCrop:
         keep = np.sort(np.concatenate(keep))
         if keep.size != self.num_keep:  # a ratio that one empty part cannot give (e.g. 0.0 without N)
             keep = np.sort(np.concatenate([keep, rng.choice(keep, size=self.num_keep - keep.size)]))
-        sample["points_src"] = partial_src
-        sample["points_ref"] = ref[keep]
+        _take(sample, "src", np.sort(np.atleast_1d(idx)))
+        _take(sample, "ref", keep)
         return sample
