@@ -1,8 +1,10 @@
 import json
+import os
 
 import numpy as np
 import pytest
 
+from src.data import cache as cache_module
 from src.data.cache import (
     CacheSplit, CacheWriter, check_cache, default_cache_root, is_cache_valid, open_cache, write_cache,
 )
@@ -19,7 +21,7 @@ def fields(**overrides) -> dict:
     base = {
         "dataset": "modelnet40", "source_layout": "princeton_off", "pair_sampling": "independent_samplings",
         "categories": ["a", "b"], "halves": {"1": ["a"], "2": ["b"]}, "sampling": {"num_samplings": 2, "seed": 0},
-        "source": {"path": "/x", "fingerprint": {"sha256": "0"}}, "missing_splits": {"test": MISSING},
+        "source": {"paths": ["/x"], "fingerprints": [{"sha256": "0"}]}, "missing_splits": {"test": MISSING},
     }
     return base | overrides
 
@@ -38,7 +40,7 @@ def cache_dir(tmp_path, split):
 
 
 def test_round_trip_is_memory_mapped(cache_dir, split):
-    cache = open_cache(cache_dir, verify=True)
+    cache = open_cache(cache_dir)
     assert (cache.dataset, cache.categories, cache.pair_sampling) == ("modelnet40", ["a", "b"], "independent_samplings")
     assert cache.halves == {"1": ["a"], "2": ["b"]} and cache.available_splits == ["train"]
     loaded = cache.split("train")
@@ -97,15 +99,55 @@ def _incomplete(path):
 def test_damage_is_detected_with_a_one_line_fix(cache_dir, damage, file, cause):
     damage(cache_dir / file)
     with pytest.raises(DatasetError, match=cause) as error:
-        open_cache(cache_dir, verify=True)
+        open_cache(cache_dir)
     assert str(error.value).endswith(HINT) and "\n" not in str(error.value)
     assert not is_cache_valid(cache_dir, {})
 
 
-def test_flipped_bytes_need_verify(cache_dir):
+def test_same_size_damage_is_noticed_on_open(cache_dir):
+    points = np.load(cache_dir / "train_points.npy", mmap_mode="r+")
+    points[:2] = 0  # in place: same size, valid .npy
+    points.flush()
+    with pytest.raises(DatasetError, match="train_points.npy is corrupt \\(sha256 mismatch\\)"):
+        open_cache(cache_dir)
+
+
+def _paths(tree, path=()):
+    """Key paths to every value of a manifest: each field, and each value nested in a field's dicts."""
+    yield path
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _paths(value, (*path, key))
+
+
+def test_every_manifest_field_is_covered_by_the_content_hash(cache_dir):
+    manifest = json.loads((cache_dir / "manifest.json").read_text())
+    checked_apart = {"content_hash", "complete", "format_version"}
+    paths = [p for p in _paths(manifest) if p and p[0] not in checked_apart]
+    assert {p[0] for p in paths} == set(manifest) - checked_apart
+    for path in paths:
+        edited = json.loads(json.dumps(manifest))
+        parent = edited
+        for key in path[:-1]:
+            parent = parent[key]
+        parent[path[-1]] = ["edited", parent[path[-1]]]
+        (cache_dir / "manifest.json").write_text(json.dumps(edited))
+        with pytest.raises(DatasetError, match=r"manifest.json is corrupt \(its content_hash does not match"):
+            open_cache(cache_dir)
+
+
+def test_content_is_hashed_once_per_process_while_files_are_unchanged(cache_dir, monkeypatch):
+    monkeypatch.setattr(cache_module, "_verified", set())
+    real_sha256, hashed = cache_module.file_sha256, []
+    monkeypatch.setattr(cache_module, "file_sha256", lambda path: hashed.append(path.name) or real_sha256(path))
+    open_cache(cache_dir)
+    open_cache(cache_dir)
+    assert sorted(hashed) == ["train_labels.npy", "train_normals.npy", "train_points.npy"]
     _flip(cache_dir / "train_points.npy")
-    open_cache(cache_dir)  # sizes only
-    assert "sha256 mismatch" in check_cache(cache_dir, {})
+    stat = (cache_dir / "train_points.npy").stat()
+    os.utime(cache_dir / "train_points.npy", ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
+    with pytest.raises(DatasetError, match="sha256 mismatch"):
+        open_cache(cache_dir)
 
 
 def test_missing_cache_names_the_fix(tmp_path):
@@ -116,7 +158,7 @@ def test_missing_cache_names_the_fix(tmp_path):
 
 
 def test_is_cache_valid_compares_expected_sub_dict(cache_dir):
-    source = {"fingerprint": {"sha256": "0"}}
+    source = {"fingerprints": [{"sha256": "0"}]}
     assert is_cache_valid(cache_dir, {"sampling": {"num_samplings": 2, "seed": 0}, "source": source})
     assert not is_cache_valid(cache_dir, {"sampling": {"num_samplings": 40, "seed": 0}})
     assert check_cache(cache_dir, {"dataset": "synthetic"}).endswith("was built with different dataset")
@@ -131,7 +173,7 @@ def test_interrupted_build_leaves_nothing(tmp_path, split):
 
 def test_rewrite_replaces_the_old_cache(cache_dir, split):
     write_cache(cache_dir, fields(missing_splits={}), {"test": split})
-    assert open_cache(cache_dir, verify=True).available_splits == ["test"]
+    assert open_cache(cache_dir).available_splits == ["test"]
     assert not (cache_dir / "train_points.npy").exists() and len(list(cache_dir.parent.iterdir())) == 1
 
 

@@ -1,5 +1,6 @@
 import json
 import logging
+import re
 import sys
 import types
 from pathlib import Path
@@ -7,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from src.data import cache as cache_module
 from src.data.cache import open_cache
 from src.data.mesh import MeshShape
 from src.data.prepare import build_synthetic_cache, ensure_cache, main, prepare
@@ -58,8 +60,11 @@ def test_resampled_split_with_missing_files(resampled_dir, tmp_path, info_logs):
     (resampled_dir / "chair" / "chair_0002.txt").unlink()
     cache = prepare("modelnet40_resampled", source=resampled_dir, cache_root=tmp_path)
     message = cache.manifest["missing_splits"]["test"]["message"]
-    assert message.startswith("split 'test' is not built: 1 of 2 shapes listed in modelnet40_test.txt are missing from")
-    assert "(first: chair_0002)" in message and message in info_logs.messages
+    assert message == (
+        f"split 'test' is not built: 1 of 2 shapes listed in its split list are missing from {resampled_dir} "
+        "(chair: 1 of 1, first: chair_0002)"
+    )
+    assert message in info_logs.messages
     assert cache.pair_sampling == "disjoint_subsets" and cache.available_splits == ["train"]
     assert cache.split("train").points.shape == (3, 1, 20, 3)
     with pytest.raises(DatasetError) as error:
@@ -94,7 +99,7 @@ def _incomplete(path):
         (_incomplete, "incomplete"),
     ],
 )
-def test_rerun_is_a_noop_and_damage_is_rebuilt(princeton_dir, tmp_path, info_logs, damage, reason):
+def test_rerun_is_a_noop_and_damage_is_rebuilt(princeton_dir, tmp_path, info_logs, monkeypatch, damage, reason):
     args = {"source": princeton_dir, "cache_root": tmp_path, "num_samplings": 2, "num_points": 16}
     original = _points(prepare("modelnet40", **args))
     points_file = tmp_path / "modelnet40" / "train_points.npy"
@@ -102,10 +107,11 @@ def test_rerun_is_a_noop_and_damage_is_rebuilt(princeton_dir, tmp_path, info_log
     prepare("modelnet40", **args)
     assert "up to date" in info_logs.text and points_file.stat().st_mtime_ns == stamp
     damage(points_file)
+    monkeypatch.setattr(cache_module, "_verified", set(), raising=False)  # as in a new process
     info_logs.clear()
     rebuilt = prepare("modelnet40", **args)
     assert "rebuilding:" in info_logs.text and reason in info_logs.text
-    assert np.array_equal(_points(open_cache(rebuilt.root, verify=True)), original)
+    assert np.array_equal(_points(open_cache(rebuilt.root)), original)
 
 
 def test_different_parameters_or_source_rebuild(princeton_dir, tmp_path, info_logs):
@@ -126,10 +132,16 @@ def test_different_parameters_or_source_rebuild(princeton_dir, tmp_path, info_lo
         (["modelnet40_resampled", "--source", "{tmp}/nowhere"], "nowhere does not exist"),
         (["modelnet40", "--url", "http://x/y.zip"], "--url is only used with --download"),
         (["synthetic", "--source", "{tmp}"], "error: --source: not applicable to synthetic"),
+        (["modelnet40_resampled", "--source", "{truncated}"], "truncated.zip is a damaged .zip archive (its end-of"),
+        (["modelnet40_resampled", "--source", "{overflow}"], "airplane_0002.txt: line 2 has the value 1e40, beyond"),
     ],
 )
-def test_main_reports_errors_in_one_line(resampled_dir, tmp_path, capsys, argv, message):
-    argv = [a.format(resampled=resampled_dir, tmp=tmp_path) for a in argv]
+def test_main_reports_errors_in_one_line(resampled_dir, make_zip, tmp_path, capsys, argv, message):
+    data = make_zip(resampled_dir).read_bytes()
+    (tmp_path / "truncated.zip").write_bytes(data[: len(data) // 2])
+    (resampled_dir / "airplane" / "airplane_0002.txt").write_text("0,0,0,0,0,1\n0.1,1e40,0,0,0,1\n")
+    argv = [a.format(resampled=resampled_dir, tmp=tmp_path, truncated=tmp_path / "truncated.zip",
+                     overflow=resampled_dir) for a in argv]
     assert main([*argv, "--cache-root", str(tmp_path / "cache")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and message in err
@@ -200,6 +212,95 @@ def test_real_airplane_archive(tmp_path, info_logs):
     assert np.allclose(np.linalg.norm(train.normals, axis=-1), 1, atol=1e-2)
     missing = cache.manifest["missing_splits"]["test"]
     assert missing["count"] == 100 and missing["examples"][:2] == ["airplane_0627", "airplane_0628"]
+    assert missing["by_category"]["airplane"]["missing"] == 100
     assert missing["message"] in info_logs.messages
-    with pytest.raises(DatasetError, match="split 'test' is not built: 100 of 100 shapes"):
+    with pytest.raises(DatasetError, match=r"'test' is not built: 100 of 100 shapes .* \(airplane: 100 of 100, first"):
         cache.split("test")
+
+
+# --- content verified at use (issue 16): train/eval open caches through ensure_cache ----------
+
+
+@pytest.fixture
+def resampled_cache(resampled_dir, make_zip, tmp_path, monkeypatch):
+    """A modelnet40_resampled cache built from a zip of ``resampled_dir``; the memo of verified caches
+    starts empty, as in a new process. Returns ``(zip, original train points)``."""
+    source = make_zip(resampled_dir)
+    cache = prepare("modelnet40_resampled", source=source, cache_root=tmp_path / "cache")
+    monkeypatch.setattr(cache_module, "_verified", set(), raising=False)
+    return source, _points(cache)
+
+
+def _zero_shapes_in_place(root: Path) -> None:
+    points = np.load(root / "modelnet40_resampled" / "train_points.npy", mmap_mode="r+")
+    points[:2] = 0
+    points.flush()
+
+
+def _flip_manifest(field: str, value: object):
+    def flip(root: Path) -> None:
+        path = root / "modelnet40_resampled" / "manifest.json"
+        manifest = json.loads(path.read_text())
+        manifest[field] = value
+        path.write_text(json.dumps(manifest, indent=1))
+    return flip
+
+
+EDITED_MANIFEST = r"manifest.json is corrupt \(its content_hash does not match its fields\)"
+DAMAGES = [
+    (_zero_shapes_in_place, r"train_points.npy is corrupt \(sha256 mismatch\)"),
+    (_flip_manifest("halves", {"2": ["airplane"]}), EDITED_MANIFEST),
+    (_flip_manifest("pair_sampling", "independent_samplings"), EDITED_MANIFEST),
+]
+
+
+@pytest.mark.parametrize(("damage", "cause"), DAMAGES)
+def test_damage_is_rebuilt_at_use_from_the_known_source(resampled_cache, tmp_path, info_logs, damage, cause):
+    source, original = resampled_cache
+    damage(tmp_path / "cache")
+    cache = ensure_cache("modelnet40_resampled", tmp_path / "cache")
+    warning = rf".*/modelnet40_resampled/{cause}: rebuilding it from {re.escape(str(source))}"
+    assert any(re.fullmatch(warning, message) for message in info_logs.messages)
+    assert np.array_equal(_points(cache), original) and cache.halves == {"1": ["airplane", "chair"], "2": []}
+    assert cache.pair_sampling == "disjoint_subsets"
+
+
+@pytest.mark.parametrize(("damage", "cause"), DAMAGES)
+def test_damage_without_its_source_is_refused_in_one_line(resampled_cache, tmp_path, damage, cause):
+    resampled_cache[0].unlink()
+    damage(tmp_path / "cache")
+    with pytest.raises(DatasetError, match=rf"{cause}; run `python -m src.data.prepare modelnet40_resampled") as error:
+        ensure_cache("modelnet40_resampled", tmp_path / "cache")
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(("damage", "cause"), DAMAGES[1:])
+def test_prepare_rebuilds_a_manifest_edited_in_place(resampled_cache, tmp_path, info_logs, damage, cause):
+    damage(tmp_path / "cache")
+    cache = prepare("modelnet40_resampled", source=resampled_cache[0], cache_root=tmp_path / "cache")
+    assert re.search(rf"rebuilding: .*{cause}", info_logs.text) and "hashes verified" not in info_logs.text
+    assert cache.halves == {"1": ["airplane", "chair"], "2": []} and cache.pair_sampling == "disjoint_subsets"
+
+
+def test_the_datamodule_notices_same_size_damage(resampled_cache, tmp_path, info_logs):
+    from src.data.datamodule import RegistrationDataModule
+
+    _zero_shapes_in_place(tmp_path / "cache")
+    datamodule = RegistrationDataModule(
+        "modelnet40_resampled", str(tmp_path / "cache"), splits={"train": {"split": "train"}}, num_workers=0,
+        remove_axisymmetric=False, pair={"sampling": "os", "partial": "prnet", "num_points": 16, "prnet_num_keep": 8},
+    )
+    datamodule.setup("fit")
+    assert "train_points.npy is corrupt (sha256 mismatch)" in info_logs.text
+    assert np.array_equal(np.asarray(datamodule.datasets["train"].points), resampled_cache[1])
+
+
+def test_a_format_1_cache_is_rebuilt_at_use_from_its_recorded_source(resampled_cache, tmp_path, info_logs):
+    path = tmp_path / "cache" / "modelnet40_resampled" / "manifest.json"
+    manifest = json.loads(path.read_text())
+    source = manifest["source"]
+    manifest |= {"format_version": 1, "source": {"path": source["paths"][0], "fingerprint": source["fingerprints"][0]}}
+    path.write_text(json.dumps(manifest))
+    cache = ensure_cache("modelnet40_resampled", tmp_path / "cache")
+    assert "has format_version 1, expected 2: rebuilding it from " in info_logs.text
+    assert cache.manifest["format_version"] == 2 and np.array_equal(_points(cache), resampled_cache[1])

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 
@@ -92,19 +94,32 @@ def test_resampled_split_with_absent_files_is_reported(resampled_dir):
     reader = open_reader(resampled_dir)
     assert list(reader.entries) == ["train"]
     missing = reader.missing["test"]
-    assert (missing.count, missing.examples) == (2, ["airplane_0003", "chair_0002"])
-    assert "split 'test' is not built: 2 of 2 shapes listed in" in missing.message
-    assert "(first: airplane_0003, chair_0002)" in missing.message
+    assert missing.count == 2 and missing.to_json()["examples"] == ["airplane_0003", "chair_0002"]
+    assert missing.by_category == {
+        "airplane": {"missing": 1, "listed": 1, "examples": ["airplane_0003"]},
+        "chair": {"missing": 1, "listed": 1, "examples": ["chair_0002"]},
+    }
+    assert missing.message == (
+        f"split 'test' is not built: 2 of 2 shapes listed in its split list are missing from {resampled_dir} "
+        "(airplane: 1 of 1, first: airplane_0003; chair: 1 of 1, first: chair_0002)"
+    )
     with pytest.raises(DatasetError, match="split 'test' is not built"):
         next(reader.iter_shapes("test"))
 
 
 @pytest.mark.parametrize(
-    ("line", "number"), [("1,2,3,4,5\n", 3), ("1,2,3,x,5,6\n", 3), ("nan,2,3,4,5,6\n", 3), ("1,2,3,4,5,6,7\n", 3)]
+    ("line", "cause"),
+    [
+        ("1,2,3,4,5", "is malformed, expected 'x,y,z,nx,ny,nz'"),
+        ("1,2,3,x,5,6", "is malformed"),
+        ("1,2,3,4,5,6,7", "is malformed"),
+        ("nan,2,3,4,5,6", "has the non-finite value nan"),
+        ("0.1, -1e40,0,0,0,1", r"has the value -1e40, beyond float32's range \(\|v\| <= 3.4e\+38\)"),
+    ],
 )
-def test_resampled_malformed_line_names_file_and_line(line, number):
-    data = ("0,0,0,0,0,1\n\n" + line + "0,0,0,0,0,1\n").encode()
-    with pytest.raises(DatasetError, match=f"airplane_0001.txt: line {number} is malformed"):
+def test_resampled_bad_line_names_file_line_and_value(line, cause):
+    data = ("0,0,0,0,0,1\n\n" + line + "\n0,0,0,0,0,1\n").encode()
+    with pytest.raises(DatasetError, match=f"^airplane/airplane_0001.txt: line 3 {cause}"):
         parse_resampled(data, "airplane/airplane_0001.txt")
 
 
@@ -124,6 +139,36 @@ def test_detect_layout_errors(tmp_path):
     (tmp_path / "f.zip").write_text("not a zip")
     with pytest.raises(DatasetError, match="neither a folder, a .zip archive nor an .off/.ply scan"):
         detect_layout(tmp_path / "f.zip")
+
+
+def _truncated(data: bytes) -> bytes:
+    return data[: len(data) // 2]
+
+
+def _zeroed_middle(data: bytes) -> bytes:
+    """Zeroes inside a member's compressed data (the central directory stays intact)."""
+    middle = len(data) // 3
+    return data[:middle] + bytes(64) + data[middle + 64:]
+
+
+@pytest.mark.parametrize(
+    ("damage", "detail"),
+    [
+        (_truncated, "its end-of-archive record is missing: truncated?"),
+        (_zeroed_middle, "Bad CRC-32|Error -3 while decompressing"),
+    ],
+)
+def test_damaged_zip_is_named_as_such(resampled_dir, make_zip, tmp_path, damage, detail):
+    damaged = tmp_path / "damaged.zip"
+    damaged.write_bytes(damage(make_zip(resampled_dir).read_bytes()))
+    with pytest.raises(DatasetError) as error:
+        reader = open_reader(damaged)
+        for entries in reader.entries.values():
+            for entry in entries:
+                reader.load(entry)
+    message = str(error.value)
+    assert message.startswith(f"source {damaged} is a damaged .zip archive (") and "\n" not in message
+    assert message.endswith("; download or copy it again") and re.search(detail, message)
 
 
 def test_scan_meshes_from_a_single_file_and_a_folder(tmp_path, meshes):

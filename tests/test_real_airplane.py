@@ -1,4 +1,5 @@
-"""exp=real_airplane on the first shapes of the shared real ModelNet40 airplane zip."""
+"""exp=real_airplane and exp=real_unseen_category on the first shapes of the shared real ModelNet40
+airplane and bathtub zips, prepared into one cache."""
 
 from pathlib import Path
 
@@ -14,23 +15,34 @@ from src.errors import DatasetError
 from src.paths import REPO_ROOT, shared_path
 
 ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
+BATHTUB_ZIP = shared_path("data", "modelnet40_normal_resampled_bathtub.zip")
 CONF = str(REPO_ROOT / "conf")
-pytestmark = pytest.mark.skipif(not ZIP.is_file(), reason=f"{ZIP} not available")
+pytestmark = pytest.mark.skipif(not (ZIP.is_file() and BATHTUB_ZIP.is_file()), reason=f"{ZIP.parent} not available")
 register_resolvers()
 
 
 @pytest.fixture(scope="module")
 def cache_root(tmp_path_factory) -> Path:
+    """Both categories, the first 12 train shapes of each."""
     root = tmp_path_factory.mktemp("cache")
-    prepare("modelnet40_resampled", source=ZIP, cache_root=root, limit=12, workers=1)
+    prepare("modelnet40_resampled", source=[ZIP, BATHTUB_ZIP], cache_root=root, limit=12, workers=1)
     return root
 
 
-def _datamodule(cache_root: Path, *overrides: str):
+def _datamodule(cache_root: Path, *overrides: str, exp: str = "real_airplane"):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("config", overrides=["+exp=real_airplane", "val_size=4", f"data.cache_root={cache_root}",
+        cfg = compose("config", overrides=[f"+exp={exp}", "val_size=4", f"data.cache_root={cache_root}",
                                            "data.num_workers=0", "output_dir=/tmp/unused", *overrides])
     return hydra.utils.instantiate(cfg.data)
+
+
+def _stage_names(datamodule) -> dict[str, list[str]]:
+    names = datamodule.cache.split("train").shape_names
+    return {stage: [names[i] for i in data.shape_indices] for stage, data in datamodule.datasets.items()}
+
+
+def _ids(category: str, first: int, last: int) -> list[str]:
+    return [f"{category}_{i:04d}" for i in range(first, last + 1)]
 
 
 def test_validation_carveout_is_the_last_train_ids(cache_root):
@@ -56,8 +68,28 @@ def test_real_pairs_are_fixed_across_worker_counts(cache_root, partial):
 
 def test_asking_for_the_withheld_test_split_stops_with_the_prepare_message(cache_root):
     dm = _datamodule(cache_root, "data.splits.test.split=test")
-    with pytest.raises(DatasetError, match=r"100 of 100 shapes .* missing .*first: airplane_0627"):
+    with pytest.raises(DatasetError, match=(
+        r"150 of 150 shapes .* missing .*\(airplane: 100 of 100, first: airplane_0627, .*; "
+        r"bathtub: 50 of 50, first: bathtub_0107, bathtub_0108, bathtub_0109, bathtub_0110, bathtub_0111, \.\.\.\)$"
+    )):
         dm.setup("test")
+
+
+def test_training_on_both_categories_keeps_the_airplane_carveout(cache_root):
+    dm = _datamodule(cache_root, "real_train_categories=[airplane,bathtub]")
+    dm.setup()
+    carveout = _ids("airplane", 9, 12)
+    assert _stage_names(dm) == {"train": _ids("airplane", 1, 8) + _ids("bathtub", 1, 12), "val": carveout,
+                                "test": carveout}
+    assert dm.datasets["train"][19]["points_src"].shape == (768, 3)  # a bathtub pair
+
+
+@pytest.mark.parametrize(("train", "test"), [("airplane", "bathtub"), ("bathtub", "airplane")])
+def test_real_unseen_category_in_both_directions(cache_root, train, test):
+    dm = _datamodule(cache_root, f"train_category={train}", f"test_category={test}", exp="real_unseen_category")
+    dm.setup()
+    assert _stage_names(dm) == {"train": _ids(train, 1, 8), "val": _ids(train, 9, 12), "test": _ids(test, 1, 12)}
+    assert dm.datasets["test"][0]["points_src"].shape == (768, 3)
 
 
 def test_stanford_bunny_gives_repeated_fixed_pairs(tmp_path):

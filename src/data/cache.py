@@ -9,15 +9,18 @@ Layout of ``<cache_root>/<dataset>/``::
 
 The manifest records ``format_version``, ``dataset``, ``source_layout``, ``pair_sampling``,
 ``categories``, ``halves``, ``splits`` (count, shape, shape_names, per-file name/bytes/sha256),
-``missing_splits`` (count, examples, message), ``sampling``, ``source``, ``content_hash`` and,
-last, ``complete: true``. A cache is written into a temporary sibling folder and renamed into
-place, so an interrupted build never leaves a valid-looking cache.
+``missing_splits`` (count, examples, by_category, message), ``sampling``, ``source`` (paths and
+fingerprints), ``content_hash`` (sha256 of every other field, the file hashes included) and, last,
+``complete: true``. A cache is written into a temporary sibling folder and renamed into place, so
+an interrupted build never leaves a valid-looking cache. Opening a cache verifies its content
+(manifest and file hashes) once per process while its files stay unchanged.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import mmap
 import os
 import shutil
 import tempfile
@@ -29,7 +32,8 @@ import numpy as np
 
 from src.errors import DatasetError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: ``content_hash`` covers the whole manifest; ``source`` holds ``paths`` and ``fingerprints``."""
 DATASETS: tuple[str, ...] = ("modelnet40", "modelnet40_resampled", "stanford", "synthetic")
 SOURCE_LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "scan_meshes", "procedural")
 PAIR_SAMPLINGS: tuple[str, ...] = ("independent_samplings", "single_sampling", "disjoint_subsets")
@@ -40,6 +44,8 @@ REQUIRED_FIELDS: tuple[str, ...] = (
     "dataset", "source_layout", "pair_sampling", "categories", "halves", "sampling", "source",
 )
 _ARRAYS: tuple[str, ...] = ("points", "normals", "labels")
+_verified: set[tuple] = set()
+"""Caches whose files were hashed in this process: (folder, content hash, (inode, size, mtime) per file)."""
 
 
 def default_cache_root() -> Path:
@@ -111,21 +117,24 @@ class Cache:
 
 
 def file_sha256(path: Path, chunk_size: int = 1 << 22) -> str:
-    """Hex sha256 of a file, read in chunks."""
+    """Hex sha256 of a file, streamed from a read-only memory map."""
     digest = hashlib.sha256()
     with open(path, "rb") as f:
-        while chunk := f.read(chunk_size):
-            digest.update(chunk)
+        if os.fstat(f.fileno()).st_size:
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data, memoryview(data) as view:
+                for start in range(0, len(view), chunk_size):
+                    digest.update(view[start:start + chunk_size])
     return digest.hexdigest()
 
 
-def _content_hash(splits: Mapping[str, dict]) -> str:
-    lines = sorted(f"{f['name']}:{f['sha256']}" for s in splits.values() for f in s["files"].values())
-    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
+def _content_hash(manifest: Mapping) -> str:
+    """sha256 of the canonical JSON of every manifest field but ``content_hash``."""
+    fields = {key: value for key, value in manifest.items() if key != "content_hash"}
+    return hashlib.sha256(json.dumps(fields, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
-def _read_manifest(path: Path, verify: bool) -> dict:
-    """The manifest of a complete, intact cache; otherwise DatasetError naming the cause."""
+def _read_manifest(path: Path) -> dict:
+    """The manifest of a complete, intact cache (content verified); otherwise DatasetError naming the cause."""
     manifest_file = path / "manifest.json"
     if not path.is_dir():
         raise DatasetError(f"no dataset cache at {path}")
@@ -135,34 +144,50 @@ def _read_manifest(path: Path, verify: bool) -> dict:
         manifest = json.loads(manifest_file.read_text())
     except (OSError, ValueError) as e:
         raise DatasetError(f"{manifest_file} is unreadable ({e})") from e
+    if not isinstance(manifest, dict):
+        raise DatasetError(f"{manifest_file} is unreadable (not a JSON object)")
     if manifest.get("complete") is not True:
         raise DatasetError(f"the cache at {path} is incomplete (interrupted build)")
     if manifest.get("format_version") != FORMAT_VERSION:
         version = manifest.get("format_version")
         raise DatasetError(f"the cache at {path} has format_version {version}, expected {FORMAT_VERSION}")
-    if _content_hash(manifest["splits"]) != manifest.get("content_hash"):
-        raise DatasetError(f"{manifest_file} is corrupt (content_hash does not match its file hashes)")
-    for info in manifest["splits"].values():
-        for f in info["files"].values():
-            file = path / f["name"]
-            if not file.is_file():
-                raise DatasetError(f"cache file {file} is missing")
-            size = file.stat().st_size
-            if size != f["bytes"]:
-                raise DatasetError(f"cache file {file} has {size} bytes, expected {f['bytes']} (truncated or corrupt)")
-            if verify and file_sha256(file) != f["sha256"]:
-                raise DatasetError(f"cache file {file} is corrupt (sha256 mismatch)")
+    if _content_hash(manifest) != manifest.get("content_hash"):
+        raise DatasetError(f"{manifest_file} is corrupt (its content_hash does not match its fields)")
+    _verify_files(path, manifest)
     return manifest
 
 
-def open_cache(path: Path, verify: bool = False) -> Cache:
-    """Open a cache folder (sizes checked; sha256 too with ``verify``).
+def _verify_files(path: Path, manifest: dict) -> None:
+    """Every file present with its recorded size, and its sha256 (hashed once per process while the
+    files keep their inode, size and mtime)."""
+    files = [(path / f["name"], f) for info in manifest["splits"].values() for f in info["files"].values()]
+    stats = []
+    for file, f in files:
+        if not file.is_file():
+            raise DatasetError(f"cache file {file} is missing")
+        stat = file.stat()
+        if stat.st_size != f["bytes"]:
+            raise DatasetError(
+                f"cache file {file} has {stat.st_size} bytes, expected {f['bytes']} (truncated or corrupt)"
+            )
+        stats.append((stat.st_ino, stat.st_size, stat.st_mtime_ns))
+    key = (str(path.resolve()), manifest["content_hash"], tuple(stats))
+    if key in _verified:
+        return
+    for file, f in files:
+        if file_sha256(file) != f["sha256"]:
+            raise DatasetError(f"cache file {file} is corrupt (sha256 mismatch)")
+    _verified.add(key)
+
+
+def open_cache(path: Path) -> Cache:
+    """Open a cache folder, its content verified (once per process while its files are unchanged).
 
     Raises one-line :class:`DatasetError` naming the cause and how to prepare the dataset.
     """
     path = Path(path)
     try:
-        return Cache(path, _read_manifest(path, verify))
+        return Cache(path, _read_manifest(path))
     except DatasetError as e:
         raise DatasetError(f"{e}; {prepare_hint(path.name)}") from None
 
@@ -178,7 +203,7 @@ def check_cache(path: Path, expected: Mapping) -> str | None:
     """``None`` when the cache at ``path`` is complete, its hashes verify and its manifest contains
     ``expected`` (a nested sub-dict, e.g. ``{"sampling": {...}}``); else the reason it is not."""
     try:
-        manifest = _read_manifest(Path(path), verify=True)
+        manifest = _read_manifest(Path(path))
     except DatasetError as e:
         return str(e)
     differing = [key for key, value in expected.items() if not _matches(manifest.get(key), value)]
@@ -235,14 +260,14 @@ class CacheWriter:
                 key: self._describe(file) for key, file in zip(_ARRAYS, files) if (self.tmp_dir / file).exists()
             }
         self._arrays.clear()
-        manifest = {
+        fields = {
             "format_version": FORMAT_VERSION,
             **self.fields,
             "missing_splits": self.fields.get("missing_splits", {}),
             "splits": self._splits,
-            "content_hash": _content_hash(self._splits),
-            "complete": True,
         }
+        fields = json.loads(json.dumps(fields))  # hashed exactly as it will be read back
+        manifest = {**fields, "content_hash": _content_hash({**fields, "complete": True}), "complete": True}
         (self.tmp_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
         old = None
         if self.out_dir.exists():

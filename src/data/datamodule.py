@@ -41,10 +41,14 @@ def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmet
     return [c for c in names if not (remove_axisymmetric and c in AXISYMMETRIC_CATEGORIES)]
 
 
-def select_shapes(cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bool) -> tuple[str, np.ndarray]:
+def select_shapes(
+    cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bool, stages: Mapping[str, Mapping] | None = None,
+) -> tuple[str, np.ndarray]:
     """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['slice']``
-    (``[start, stop]`` as a Python slice over them in split-list order, e.g. ``[-100, null]``), then
-    each repeated ``spec['repeat']`` times (several fixed pairs per shape, e.g. for a few real scans)."""
+    (``[start, stop]`` as a Python slice over them in split-list order, e.g. ``[-100, null]``), less the
+    shapes of the ``stages`` that ``spec['exclude']`` names (e.g. ``[val]``: several categories but one
+    category's validation carve-out), then each repeated ``spec['repeat']`` times (several fixed pairs
+    per shape, e.g. for a few real scans)."""
     split = cache.split(spec["split"])
     categories = resolve_categories(spec.get("categories", "all"), cache, remove_axisymmetric)
     wanted = [cache.categories.index(c) for c in categories]
@@ -52,9 +56,16 @@ def select_shapes(cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bo
     bounds = spec.get("slice")
     if bounds is not None:
         indices = indices[slice(*(None if b is None else int(b) for b in bounds))]
-    unknown = set(spec) - {"split", "categories", "slice", "repeat"}
+    for stage in spec.get("exclude", ()):
+        other = (stages or {}).get(stage)
+        if other is None or "exclude" in other or other["split"] != spec["split"]:
+            raise ConfigError(f"data.splits exclude: {stage!r} must be a stage of split {spec['split']!r} without exclude")
+        indices = indices[~np.isin(indices, select_shapes(cache, other, remove_axisymmetric)[1])]
+    unknown = set(spec) - {"split", "categories", "slice", "exclude", "repeat"}
     if unknown:
-        raise ConfigError(f"data.splits entries take split, categories, slice and repeat; unknown: {sorted(unknown)}")
+        raise ConfigError(
+            f"data.splits entries take split, categories, slice, exclude and repeat; unknown: {sorted(unknown)}"
+        )
     repeat = int(spec.get("repeat", 1))
     if repeat < 1:
         raise ConfigError(f"data.splits repeat must be >= 1, got {repeat}")
@@ -110,15 +121,35 @@ class RegistrationDataModule(L.LightningDataModule):
         if self.cache is None:
             self.cache = ensure_cache(self.dataset, self.cache_root, **self.build)
         wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), None: STAGES}.get(stage, STAGES)
+        if "train" in wanted:
+            self._refuse_leaks()
         transforms = build_pair_transforms(self.cache.pair_sampling, **self.pair)
         for name in wanted:
             if name in self.datasets or name not in self.splits:
                 continue
-            split, indices = select_shapes(self.cache, self.splits[name], self.remove_axisymmetric)
+            split, indices = select_shapes(self.cache, self.splits[name], self.remove_axisymmetric, self.splits)
             data = self.cache.split(split)
             stream = TRAIN_STREAM if name == "train" else EVAL_STREAM
             self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream,
                                               normals=self._normals_of(data))
+
+    def _refuse_leaks(self) -> None:
+        """ConfigError if a training shape is also a validation or test shape (e.g. one category for
+        both sides of ``+exp=real_unseen_category``, or a carve-out that overlaps the training slice)."""
+        if "train" not in self.splits:
+            return
+        split, train = select_shapes(self.cache, self.splits["train"], self.remove_axisymmetric, self.splits)
+        for name in ("val", "test"):
+            spec = self.splits.get(name)
+            if spec is None or spec["split"] != split:
+                continue
+            shared = np.intersect1d(train, select_shapes(self.cache, spec, self.remove_axisymmetric, self.splits)[1])
+            if shared.size:
+                names = self.cache.split(split).shape_names
+                raise ConfigError(
+                    f"{shared.size} shapes of the {name} set are also training shapes (first: {names[shared[0]]}): "
+                    f"make data.splits.train and data.splits.{name} disjoint (slice, exclude or other categories)"
+                )
 
     def _normals_of(self, data: CacheSplit) -> np.ndarray | None:
         """The split's normals when ``data.normals=cache`` (DatasetError if the cache has none)."""

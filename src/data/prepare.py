@@ -4,11 +4,14 @@
   ``independent_samplings``) or PointNet's h5 archive (S=1, ``single_sampling``), folder or .zip.
 * ``modelnet40_resampled --source PATH``: PointNet++'s ``modelnet40_normal_resampled`` (S=1 dense
   points + normals, ``disjoint_subsets``); a split whose listed files are absent is not built and
-  reported (count + first ids).
+  reported (per category: count + first ids).
 * ``synthetic``: the embedded procedural default (also built on first use by :func:`ensure_cache`).
 
+``--source`` may be repeated: archives of one layout (e.g. one .zip per category) are merged into one
+cache (their categories, splits and fingerprints in one manifest; the order given does not matter).
 ``--download`` fetches the official archive into ``<cache_root>/downloads/`` first. Re-running with
-the same parameters only verifies the cache; a corrupt, partial or differently built one is rebuilt.
+the same parameters and sources only verifies the cache; a corrupt, partial or differently built one
+is rebuilt.
 """
 
 from __future__ import annotations
@@ -17,15 +20,18 @@ import argparse
 import fcntl
 import importlib
 import itertools
+import json
 import logging
 import os
 import sys
-from collections.abc import Callable, Iterable, Iterator
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from multiprocessing import get_context
 from pathlib import Path, PurePosixPath
 from types import ModuleType
+from typing import NamedTuple
 from urllib.parse import urlparse
 
 import numpy as np
@@ -37,7 +43,7 @@ from src.data.cache import (
 from src.data.categories import half_categories
 from src.data.download import download as download_file
 from src.data.mesh import MeshShape
-from src.data.readers import READERS, Archive, PointShape, Reader, layout_of
+from src.data.readers import READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, layout_of
 from src.data.sampling import METHOD, NORMALIZATION, sample_shape
 from src.errors import DatasetError, exit_code_of
 
@@ -203,39 +209,62 @@ def modelnet_halves(categories: list[str]) -> dict[str, list[str]]:
     return {str(h): [c for c in half_categories(h, remove_axisymmetric=False) if c in categories] for h in (1, 2)}
 
 
-def prepare_modelnet(
-    dataset: str, source: Path, cache_root: Path, *, num_samplings: int | None = None, num_points: int | None = None,
-    seed: int = 0, workers: int = 1, force: bool = False, limit: int | None = None,
-) -> Cache:
-    """Build (or reuse) ``<cache_root>/<dataset>`` from a ModelNet40 archive (folder or .zip)."""
-    source = Path(source)
-    archive = Archive(source)
-    layout = layout_of(archive)
+class _Source(NamedTuple):
+    """One archive given to ``prepare``: its path as given, the opened archive and its fingerprint."""
+
+    path: Path
+    archive: Archive
+    fingerprint: dict
+
+
+def _open_sources(paths: Sequence[Path]) -> list[_Source]:
+    """The archives at ``paths`` in a content-defined order (by fingerprint), so that the order in which
+    they are given changes neither the cache nor whether it is up to date."""
+    sources = [_Source(Path(p), Archive(Path(p)), source_fingerprint(Path(p))) for p in paths]
+    return sorted(sources, key=lambda s: json.dumps(s.fingerprint, sort_keys=True))
+
+
+def _common_layout(dataset: str, sources: list[_Source]) -> str:
+    layouts = [layout_of(s.archive) for s in sources]
+    if len(set(layouts)) > 1:
+        found = ", ".join(f"{s.path} is {layout}" for s, layout in zip(sources, layouts))
+        raise DatasetError(f"sources to merge must share one layout: {found}")
+    layout = layouts[0]
     if layout not in DATASET_LAYOUTS[dataset]:
-        other = next(d for d, layouts in DATASET_LAYOUTS.items() if layout in layouts)
-        raise DatasetError(f"{source} is in the {layout} layout, which is prepared as `{other}`, not `{dataset}`")
+        other = next(d for d, options in DATASET_LAYOUTS.items() if layout in options)
+        raise DatasetError(
+            f"{sources[0].path} is in the {layout} layout, which is prepared as `{other}`, not `{dataset}`"
+        )
+    return layout
+
+
+def prepare_modelnet(
+    dataset: str, sources: Sequence[Path], cache_root: Path, *, num_samplings: int | None = None,
+    num_points: int | None = None, seed: int = 0, workers: int = 1, force: bool = False, limit: int | None = None,
+) -> Cache:
+    """Build (or reuse) ``<cache_root>/<dataset>`` from ModelNet40 archives (folders or .zip files) of
+    one layout; several are merged into one cache (:class:`~src.data.readers.MergedReader`)."""
+    opened = _open_sources(sources)
+    layout = _common_layout(dataset, opened)
     sampling = _sampling_params(layout, num_samplings, num_points, seed, limit)
-    fingerprint = source_fingerprint(source)
     out = cache_root / dataset
     expected = {
-        "dataset": dataset, "source_layout": layout, "sampling": sampling, "source": {"fingerprint": fingerprint},
+        "dataset": dataset, "source_layout": layout, "sampling": sampling,
+        "source": {"fingerprints": [s.fingerprint for s in opened]},
     }
     with _build_lock(out):
-        return _reuse(out, expected, force) or _build_modelnet(
-            out, dataset, archive, layout, sampling, fingerprint, workers, limit
-        )
+        return _reuse(out, expected, force) or _build_modelnet(out, dataset, opened, layout, sampling, workers, limit)
 
 
 def _build_modelnet(
-    out: Path, dataset: str, archive: Archive, layout: str, sampling: dict, fingerprint: dict, workers: int,
-    limit: int | None,
+    out: Path, dataset: str, sources: list[_Source], layout: str, sampling: dict, workers: int, limit: int | None,
 ) -> Cache:
-    source = archive.path
-    reader = READERS[layout](archive)
+    readers = [READERS[layout](s.archive) for s in sources]
+    reader = readers[0] if len(readers) == 1 else MergedReader(readers)
     for missing in reader.missing.values():
         log.warning(missing.message)
     if not reader.entries:
-        raise DatasetError(f"{source}: no split can be built")
+        raise DatasetError(f"{reader.where}: no split can be built")
     if layout in ("princeton_off", "scan_meshes"):
         compute, pair_sampling = _sample_mesh, _pair_sampling(sampling["num_samplings"])
     else:
@@ -246,7 +275,7 @@ def _build_modelnet(
     fields = {
         "dataset": dataset, "source_layout": layout, "pair_sampling": pair_sampling,
         "categories": reader.categories, "halves": modelnet_halves(reader.categories), "sampling": sampling,
-        "source": {"path": str(source.resolve()), "fingerprint": fingerprint},
+        "source": {"paths": [str(s.path.resolve()) for s in sources], "fingerprints": [s.fingerprint for s in sources]},
         "missing_splits": {split: missing.to_json() for split, missing in reader.missing.items()},
     }
     # h5 shapes are rows of large files: loading them in one process reads each file once.
@@ -254,13 +283,24 @@ def _build_modelnet(
     with CacheWriter(out, fields) as writer, _shape_mapper(reader, compute, sampling, workers) as map_tasks:
         offset = 0  # shape index = position in the full split lists, so --limit keeps the first shapes' samplings
         for split, entries in reader.entries.items():
-            tasks = list(enumerate(entries[:limit], start=offset))
+            tasks = _first_per_category(entries, offset, limit)
             offset += len(entries)
             labels = [reader.categories.index(e.category) for _, e in tasks]
             _write_split(writer, split, [e.name for _, e in tasks], labels, map_tasks(tasks), f"{dataset} {split}")
         cache = writer.commit()
     _log_summary(cache)
     return cache
+
+
+def _first_per_category(entries: list[ShapeEntry], offset: int, limit: int | None) -> list[tuple[int, ShapeEntry]]:
+    """``(offset + position, entry)`` of the first ``limit`` shapes of each category (all without a limit)."""
+    taken: Counter[str] = Counter()
+    tasks = []
+    for index, entry in enumerate(entries, start=offset):
+        taken[entry.category] += 1
+        if limit is None or taken[entry.category] <= limit:
+            tasks.append((index, entry))
+    return tasks
 
 
 # --- synthetic ------------------------------------------------------------------------------
@@ -285,7 +325,8 @@ def build_synthetic_cache(
     fingerprint = {"sha256": file_sha256(Path(module_file))} if module_file else {}
     categories = list(synthetic.SYNTHETIC_CATEGORIES)
     expected = {
-        "dataset": "synthetic", "categories": categories, "sampling": sampling, "source": {"fingerprint": fingerprint},
+        "dataset": "synthetic", "categories": categories, "sampling": sampling,
+        "source": {"fingerprints": [fingerprint]},
     }
     with _build_lock(out):
         return _reuse(out, expected, force) or _build_synthetic(out, synthetic, sampling, fingerprint)
@@ -299,8 +340,9 @@ def _build_synthetic(out: Path, synthetic: ModuleType, sampling: dict, fingerpri
         by_split.setdefault(shape.split, []).append(shape)
     fields = {
         "dataset": "synthetic", "source_layout": "procedural",
-        "pair_sampling": _pair_sampling(sampling["num_samplings"]), "categories": categories, "halves": {k: list(v) for k, v in synthetic.SYNTHETIC_HALVES.items()},
-        "sampling": sampling, "source": {"path": synthetic.__name__, "fingerprint": fingerprint},
+        "pair_sampling": _pair_sampling(sampling["num_samplings"]), "categories": categories,
+        "halves": {k: list(v) for k, v in synthetic.SYNTHETIC_HALVES.items()},
+        "sampling": sampling, "source": {"paths": [synthetic.__name__], "fingerprints": [fingerprint]},
     }
     with CacheWriter(out, fields) as writer:
         offset = 0
@@ -315,14 +357,15 @@ def _build_synthetic(out: Path, synthetic: ModuleType, sampling: dict, fingerpri
 
 
 def ensure_cache(dataset: str, cache_root: Path | None = None, **params) -> Cache:
-    """The cache of ``dataset``: synthetic is built on first use (``params`` go to
-    :func:`build_synthetic_cache`); a real dataset must have been prepared, and any ``params``
-    (e.g. ``num_points=2048``) must match its manifest's ``sampling``."""
+    """The cache of ``dataset``, its content verified (once per process): synthetic is built on
+    first use (``params`` go to :func:`build_synthetic_cache`); a real dataset must have been
+    prepared (a damaged cache is rebuilt from the sources its manifest names when they still exist,
+    else refused), and any ``params`` (e.g. ``num_points=2048``) must match its manifest's ``sampling``."""
     root = Path(cache_root or default_cache_root())
     if dataset == "synthetic":
         return build_synthetic_cache(root, **params)
     _check_dataset(dataset)
-    cache = open_cache(root / dataset)
+    cache = _open_or_rebuild(dataset, root / dataset)
     for key, value in params.items():
         if cache.manifest["sampling"].get(key) != value:
             raise DatasetError(
@@ -332,13 +375,38 @@ def ensure_cache(dataset: str, cache_root: Path | None = None, **params) -> Cach
     return cache
 
 
+def _open_or_rebuild(dataset: str, path: Path) -> Cache:
+    """The verified cache at ``path``; a damaged one whose sources are known is rebuilt from them."""
+    problem = check_cache(path, {})
+    build = None if problem is None else _recorded_build(path)
+    if build is None:
+        return open_cache(path)  # the cache, or the one-line cause and fix
+    log.warning(f"{problem}: rebuilding it from {', '.join(map(str, build['sources']))}")
+    return prepare_modelnet(dataset, cache_root=path.parent, **build)
+
+
+def _recorded_build(path: Path) -> dict | None:
+    """:func:`prepare_modelnet`'s arguments as the manifest at ``path`` records them, when it is
+    readable and names sources that all still exist."""
+    try:
+        manifest = json.loads((path / "manifest.json").read_text())
+        source, sampling = manifest["source"], manifest["sampling"]
+        sources = [Path(p) for p in source.get("paths") or [source["path"]]]  # format 1 recorded one "path"
+        build = {"sources": sources, "seed": sampling.get("seed", 0), "limit": sampling.get("limit")}
+        if sampling["method"] != AS_PROVIDED:
+            build |= {"num_samplings": sampling["num_samplings"], "num_points": sampling["num_points"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    return build if sources and all(p.exists() for p in sources) else None
+
+
 # --- command line ---------------------------------------------------------------------------
 
 
 def prepare(
-    dataset: str, *, source: Path | None = None, cache_root: Path | None = None, num_samplings: int | None = None,
-    num_points: int | None = None, seed: int = 0, workers: int = 1, download: bool = False, url: str | None = None,
-    force: bool = False, limit: int | None = None,
+    dataset: str, *, source: Path | Sequence[Path] | None = None, cache_root: Path | None = None,
+    num_samplings: int | None = None, num_points: int | None = None, seed: int = 0, workers: int = 1,
+    download: bool = False, url: str | None = None, force: bool = False, limit: int | None = None,
 ) -> Cache:
     """What the command line does; see the module docstring."""
     cache_root = Path(cache_root or default_cache_root())
@@ -353,21 +421,22 @@ def prepare(
             seed=seed, force=force,
         )
     _check_dataset(dataset)
+    sources = [source] if isinstance(source, (str, os.PathLike)) else list(source or [])
     if url and not download:
         raise DatasetError("--url is only used with --download")
-    if download and source:
+    if download and sources:
         raise DatasetError("use either --source PATH or --download, not both")
     if download:
         if not url and DATASET_LAYOUTS[dataset][0] not in URLS:
             raise DatasetError(f"{dataset} has no official archive to download: pass --source PATH (or --download --url URL)")
         url = url or URLS[DATASET_LAYOUTS[dataset][0]]
         name = PurePosixPath(urlparse(url).path).name or f"{dataset}.zip"
-        source = download_file(url, cache_root / "downloads" / name)
-    if source is None:
+        sources = [download_file(url, cache_root / "downloads" / name)]
+    if not sources:
         archives = " or ".join(DATASET_LAYOUTS[dataset])
         raise DatasetError(f"{dataset} needs --source PATH (a {archives} folder or .zip) or --download")
     return prepare_modelnet(
-        dataset, Path(source), cache_root, num_samplings=num_samplings, num_points=num_points,
+        dataset, sources, cache_root, num_samplings=num_samplings, num_points=num_points,
         seed=seed, workers=workers, force=force, limit=limit,
     )
 
@@ -382,7 +451,10 @@ def _positive_int(text: str) -> int:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m src.data.prepare", description=__doc__.split("\n\n")[0])
     p.add_argument("dataset", choices=DATASETS)
-    p.add_argument("--source", type=Path, help="archive folder or .zip (layout auto-detected)")
+    p.add_argument(
+        "--source", type=Path, action="append",
+        help="archive folder or .zip (layout auto-detected); repeat to merge several of one layout into one cache",
+    )
     p.add_argument("--cache-root", type=Path, help="default: $OMNET_CACHE_DIR or ~/.cache/omnet-registration")
     p.add_argument("--num-samplings", type=_positive_int, help="mesh samplings per shape (default 40; synthetic 10)")
     p.add_argument("--num-points", type=_positive_int, help="points per mesh sampling (default 2048)")
@@ -391,7 +463,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--download", action="store_true", help="fetch the official archive into <cache-root>/downloads/")
     p.add_argument("--url", help="archive URL for --download (overrides the official one)")
     p.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
-    p.add_argument("--limit", type=_positive_int, help="only the first N shapes per split (smoke tests)")
+    p.add_argument(
+        "--limit", type=_positive_int, help="only the first N shapes of each category per split (smoke tests)"
+    )
     return p
 
 

@@ -7,7 +7,8 @@
 
 A reader lists its shapes as :class:`ShapeEntry` per split (``entries``), reports the splits it
 cannot build (``missing``) and loads one entry at a time (``load``). Readers are picklable, so
-process-pool workers can load entries themselves.
+process-pool workers can load entries themselves. :class:`MergedReader` reads several archives of
+one layout (e.g. one zip per category) as one.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import json
 import os
 import re
 import zipfile
+import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 
 import h5py
@@ -31,7 +33,9 @@ from src.errors import DatasetError
 LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "scan_meshes")
 SPLITS: tuple[str, ...] = ("train", "test")
 MISSING_EXAMPLES = 10
-"""How many missing shape ids a :class:`MissingSplit` keeps (the message shows the first 5)."""
+"""How many missing shape ids a :class:`MissingSplit` keeps per category (the message shows the first 5)."""
+ZIP_SIGNATURES: tuple[bytes, ...] = (b"PK\x03\x04", b"PK\x05\x06")
+"""How a .zip file starts (a local file header, or the end record of an empty archive)."""
 
 
 @dataclass(frozen=True)
@@ -54,19 +58,46 @@ class ShapeEntry:
     split: str
     member: str
     index: int = 0
+    source: int = 0
+    """Which archive of a :class:`MergedReader` holds it."""
 
 
 @dataclass(frozen=True)
 class MissingSplit:
-    """A split that cannot be built: ``count`` shape ids without a file (first ``examples``)."""
+    """A split that cannot be built. ``by_category`` maps each category whose listed shape ids lack
+    a file to ``{"missing": n, "listed": m, "examples": first ids}`` (``listed``: shapes the split
+    lists in all); both are empty for a split without any shape (``message`` says which)."""
 
     split: str
-    count: int
-    examples: list[str]
     message: str
+    by_category: dict[str, dict] = field(default_factory=dict)
+    listed: int = 0
+
+    @classmethod
+    def of_files(cls, split: str, listed: int, by_category: dict[str, dict], sources: list[str]) -> MissingSplit:
+        """Listed shapes without a file in ``sources``."""
+        count = sum(gap["missing"] for gap in by_category.values())
+        details = "; ".join(
+            f"{category}: {gap['missing']} of {gap['listed']}, first: {_shown(gap['examples'])}"
+            for category, gap in by_category.items()
+        )
+        message = (
+            f"split '{split}' is not built: {count} of {listed} shapes listed in its split list are missing "
+            f"from {', '.join(sources)} ({details})"
+        )
+        return cls(split, message, by_category, listed)
+
+    @property
+    def count(self) -> int:
+        return sum(gap["missing"] for gap in self.by_category.values())
 
     def to_json(self) -> dict:
-        return {"count": self.count, "examples": self.examples, "message": self.message}
+        examples = [name for gap in self.by_category.values() for name in gap["examples"]][:MISSING_EXAMPLES]
+        return {"count": self.count, "examples": examples, "by_category": self.by_category, "message": self.message}
+
+
+def _shown(ids: list[str], limit: int = 5) -> str:
+    return ", ".join(ids[:limit]) + (", ..." if len(ids) > limit else "")
 
 
 class Archive:
@@ -79,6 +110,8 @@ class Archive:
         single = self.path.is_file() and self.path.suffix.lower() in (".off", ".ply")
         self.is_zip = self.path.is_file() and not single
         if self.is_zip and not zipfile.is_zipfile(self.path):
+            if _starts_like_zip(self.path):
+                raise self._damaged("its end-of-archive record is missing: truncated?")
             raise DatasetError(f"source {self.path} is neither a folder, a .zip archive nor an .off/.ply scan")
         if single:  # one scan file: an archive of that file alone, read from its folder
             names, self.path = [self.path.name], self.path.parent
@@ -96,17 +129,30 @@ class Archive:
 
     def _zip(self) -> zipfile.ZipFile:
         if getattr(self, "_handle", None) is None:
-            self._handle = zipfile.ZipFile(self.path)
+            try:
+                self._handle = zipfile.ZipFile(self.path)
+            except zipfile.BadZipFile as e:
+                raise self._damaged(str(e)) from e
         return self._handle
 
     def read(self, name: str) -> bytes:
         try:
             return self._zip().read(name) if self.is_zip else (self.path / name).read_bytes()
-        except (KeyError, OSError, zipfile.BadZipFile) as e:
+        except (zipfile.BadZipFile, zlib.error, EOFError) as e:
+            raise self._damaged(f"{name}: {e}") from e
+        except (KeyError, OSError) as e:
             raise DatasetError(f"cannot read {name} from {self.path}: {e}") from e
+
+    def _damaged(self, detail: str) -> DatasetError:
+        return DatasetError(f"source {self.path} is a damaged .zip archive ({detail}); download or copy it again")
 
     def __getstate__(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "_handle"}
+
+
+def _starts_like_zip(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(4) in ZIP_SIGNATURES
 
 
 def _is_junk(name: str) -> bool:
@@ -139,14 +185,19 @@ class Reader:
         self.entries: dict[str, list[ShapeEntry]] = {}
         self.missing: dict[str, MissingSplit] = {}
 
+    @property
+    def where(self) -> str:
+        """The source(s) read, for messages."""
+        return str(self.archive.path)
+
     def _set_splits(self, entries: dict[str, list[ShapeEntry]]) -> None:
         """Keep non-empty splits; an empty split is reported as missing, never dropped silently."""
         for split in SPLITS:
             if entries.get(split):
                 self.entries[split] = entries[split]
             elif split not in self.missing:
-                message = f"split '{split}' is not available: {self.archive.path} has no {split} shapes"
-                self.missing[split] = MissingSplit(split, 0, [], message)
+                message = f"split '{split}' is not available: {self.where} has no {split} shapes"
+                self.missing[split] = MissingSplit(split, message)
 
     def load(self, entry: ShapeEntry) -> MeshShape | PointShape:
         raise NotImplementedError
@@ -323,25 +374,39 @@ def parse_resampled(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
     return values[:, :3], values[:, 3:]
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def _first_bad_line(data: bytes) -> str:
-    """Describe the first line that is not 6 finite comma-separated numbers (error path only)."""
+    """Describe the first line that is not 6 comma-separated numbers finite in float32 (error path only)."""
     for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            values = [float(v) for v in line.split(",")]
-        except ValueError:
-            values = []
-        if len(values) != 6 or not all(np.isfinite(values)):
-            return f"line {number} is malformed, expected 'x,y,z,nx,ny,nz': {line.strip()[:80]!r}"
+        if line.strip() and (problem := _line_problem(line.strip())):
+            return f"line {number} {problem}: {line.strip()[:80]!r}"
     return "no points (empty file)"
+
+
+def _line_problem(line: str) -> str | None:
+    """Why one ``x,y,z,nx,ny,nz`` line cannot be stored as float32, or ``None``."""
+    fields = [v.strip() for v in line.split(",")]
+    try:
+        values = [float(v) for v in fields]
+    except ValueError:
+        values = []
+    if len(values) != 6:
+        return "is malformed, expected 'x,y,z,nx,ny,nz'"
+    for text, value in zip(fields, values):
+        if not np.isfinite(value):
+            return f"has the non-finite value {text}"
+        if abs(value) > FLOAT32_MAX:
+            return f"has the value {text}, beyond float32's range (|v| <= {FLOAT32_MAX:.3g})"
+    return None
 
 
 class ResampledReader(Reader):
     """``modelnet40_shape_names.txt``, ``modelnet40_{train,test}.txt`` and ``<category>/<id>.txt``.
 
     Categories whose folder is absent are not part of the archive; a split whose list names
-    absent files of present categories is reported in ``missing`` (count + first ids).
+    absent files of present categories is reported in ``missing`` (per category: count + first ids).
     """
 
     layout = "pointnet2_resampled"
@@ -367,19 +432,23 @@ class ResampledReader(Reader):
                 for shape_id, category in listed
                 if category in self.categories
             ]
-            absent = [e.name for e in entries[split] if e.member not in archive.file_set]
-            if absent:
-                self.missing[split] = self._missing_files(split, absent, len(entries[split]), list_file)
+            gaps = self._gaps(entries[split])
+            if gaps:
+                self.missing[split] = MissingSplit.of_files(split, len(entries[split]), gaps, [self.where])
                 del entries[split]
         self._set_splits(entries)
 
-    def _missing_files(self, split: str, ids: list[str], total: int, listed_in: str) -> MissingSplit:
-        shown = ", ".join(ids[:5]) + (", ..." if len(ids) > 5 else "")
-        message = (
-            f"split '{split}' is not built: {len(ids)} of {total} shapes listed in {listed_in} "
-            f"are missing from {self.archive.path} (first: {shown})"
-        )
-        return MissingSplit(split, len(ids), ids[:MISSING_EXAMPLES], message)
+    def _gaps(self, entries: list[ShapeEntry]) -> dict[str, dict]:
+        """Per category with absent files: ``{"missing", "listed", "examples"}``."""
+        gaps: dict[str, dict] = {}
+        for entry in entries:
+            gap = gaps.setdefault(entry.category, {"missing": 0, "listed": 0, "examples": []})
+            gap["listed"] += 1
+            if entry.member not in self.archive.file_set:
+                gap["missing"] += 1
+                if len(gap["examples"]) < MISSING_EXAMPLES:
+                    gap["examples"].append(entry.name)
+        return {category: gap for category, gap in gaps.items() if gap["missing"]}
 
     def _category(self, shape_id: str, list_file: str) -> str:
         match = self.ID.fullmatch(shape_id)
@@ -391,8 +460,6 @@ class ResampledReader(Reader):
         points, normals = parse_resampled(self.archive.read(entry.member), entry.member)
         return PointShape(entry.name, entry.category, entry.split, points, normals)
 
-
-# --- layout detection -----------------------------------------------------------------------
 
 # --- real scans (Stanford 3D Scanning Repository style) --------------------------------------
 
@@ -441,12 +508,70 @@ def _parse_ply(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
+# --- several archives as one ------------------------------------------------------------------
+
+
+class MergedReader(Reader):
+    """Several readers of one layout (e.g. one .zip per category) as one: the categories of all in
+    ModelNet40 order, each split their shapes by category. A split that misses listed files in any
+    source is not built and is reported per category; a shape id in two sources is refused."""
+
+    def __init__(self, readers: list[Reader]):
+        self.readers = readers
+        self.layout = readers[0].layout
+        self.categories = _ordered({c for r in readers for c in r.categories})
+        self.entries, self.missing = {}, {}
+        for split in SPLITS:
+            gaps = [r.missing[split] for r in readers if split in r.missing and r.missing[split].count]
+            if gaps:
+                self.missing[split] = self._merged_gaps(split, gaps)
+            elif any(split in r.entries for r in readers):
+                self.entries[split] = self._merged_entries(split)
+            elif any(split in r.missing for r in readers):
+                message = f"split '{split}' is not available: none of {self.where} has {split} shapes"
+                self.missing[split] = MissingSplit(split, message)
+
+    @property
+    def where(self) -> str:
+        return ", ".join(r.where for r in self.readers)
+
+    def _merged_entries(self, split: str) -> list[ShapeEntry]:
+        entries = [replace(e, source=i) for i, r in enumerate(self.readers) for e in r.entries.get(split, [])]
+        entries.sort(key=lambda e: self.categories.index(e.category))  # stable: each source's order kept
+        seen: dict[str, int] = {}
+        for entry in entries:
+            if seen.setdefault(entry.name, entry.source) != entry.source:
+                where = (self.readers[seen[entry.name]].where, self.readers[entry.source].where)
+                raise DatasetError(f"shape {entry.name} ({split}) is in two sources: {where[0]} and {where[1]}")
+        return entries
+
+    def _merged_gaps(self, split: str, gaps: list[MissingSplit]) -> MissingSplit:
+        by_category: dict[str, dict] = {}
+        for category in self.categories:
+            parts = [g.by_category[category] for g in gaps if category in g.by_category]
+            if parts:
+                examples = [name for part in parts for name in part["examples"]][:MISSING_EXAMPLES]
+                by_category[category] = {
+                    "missing": sum(p["missing"] for p in parts), "listed": sum(p["listed"] for p in parts),
+                    "examples": examples,
+                }
+        sources = [r.where for r in self.readers if split in r.missing and r.missing[split].count]
+        listed = sum(len(r.entries.get(split, [])) for r in self.readers) + sum(g.listed for g in gaps)
+        return MissingSplit.of_files(split, listed, by_category, sources)
+
+    def load(self, entry: ShapeEntry) -> MeshShape | PointShape:
+        return self.readers[entry.source].load(entry)
+
+
 READERS: dict[str, type[Reader]] = {
     "pointnet2_resampled": ResampledReader,
     "pointnet_h5": PointNetH5Reader,
     "princeton_off": PrincetonOffReader,
     "scan_meshes": ScanMeshReader,
 }
+
+
+# --- layout detection -----------------------------------------------------------------------
 
 
 def layout_of(archive: Archive) -> str:
