@@ -227,3 +227,22 @@ def test_real_airplane_normals_reach_rpmnet_with_the_files_sign(tmp_path):
         out = model(batch["points_src"], batch["points_ref"], normals_src=batch["normals_src"],
                     normals_ref=batch["normals_ref"])
     assert torch.isfinite(out["transforms"][-1]).all()
+
+
+def test_synthetic_and_mesh_caches_keep_face_normals_when_asked(tmp_path, princeton_dir):
+    """data.build.normals / --normals: the cache stores the sampled faces' normals (unit, one per point);
+    without it the cache is the same as before (no normals, the same sampling record)."""
+    from src.data.prepare import build_synthetic_cache, prepare
+
+    plain = build_synthetic_cache(tmp_path / "a", num_train_per_category=1, num_test_per_category=1, num_samplings=2,
+                                  num_points=64)
+    assert plain.split("train").normals is None and "normals" not in plain.manifest["sampling"]
+    with_normals = build_synthetic_cache(tmp_path / "a", num_train_per_category=1, num_test_per_category=1,
+                                         num_samplings=2, num_points=64, normals=True)
+    split = with_normals.split("train")
+    assert split.normals is not None and split.normals.shape == split.points.shape
+    np.testing.assert_allclose(np.linalg.norm(split.normals, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(split.points, plain.split("train").points)  # same samplings, normals added
+    mesh = prepare("modelnet40", source=princeton_dir, cache_root=tmp_path / "m", num_samplings=2, num_points=32,
+                   normals=True)
+    assert mesh.split("train").normals.shape == mesh.split("train").points.shape

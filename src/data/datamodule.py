@@ -157,8 +157,9 @@ class RegistrationDataModule(L.LightningDataModule):
             return None
         if data.normals is None:
             raise DatasetError(
-                f"data.normals=cache, but the {self.dataset} cache stores no normals for split {data.name!r} (mesh "
-                "samplings keep none; the PointNet++ resampled layout has them): use data.normals=none "
+                f"data.normals=cache, but the {self.dataset} cache stores no normals for split {data.name!r}: build "
+                "it with them (synthetic: data.build.normals=true; meshes: `python -m src.data.prepare ... --normals`; "
+                "the PointNet++ resampled layout always has them) or use data.normals=none "
                 "(RPMNet: model.network.normals=estimated)"
             )
         return data.normals

@@ -74,10 +74,11 @@ Compute = Callable[[Shape, int, dict], Sampled]
 
 
 def _sample_mesh(shape: MeshShape, index: int, params: dict) -> Sampled:
-    """Mesh samplings without normals: the paper estimates normals after pre-processing (FGR,
-    RPMNet), so storing the faces' normals would only double the cache (12 GB for ModelNet40)."""
-    points, _ = sample_shape(shape, params["num_samplings"], params["num_points"], params["seed"], index)
-    return points, None
+    """Mesh samplings, with the sampled faces' normals only when ``params["normals"]`` (``--normals``):
+    the paper estimates normals after pre-processing (FGR, RPMNet), and storing them doubles the
+    cache (12 GB for ModelNet40); RPMNet's own protocol uses them (``model.network.normals=given``)."""
+    points, normals = sample_shape(shape, params["num_samplings"], params["num_points"], params["seed"], index)
+    return points, normals if params.get("normals") else None
 
 
 def _as_provided(shape: PointShape, index: int, params: dict) -> Sampled:
@@ -188,17 +189,22 @@ def source_fingerprint(source: Path) -> dict:
     return {"files": len(stats), "bytes": sum(s.st_size for s in stats), "mtime_ns": newest}
 
 
+def _normals_flag(normals: bool) -> dict:
+    """The ``sampling`` entry of ``--normals`` (absent when off, so caches built without it stay valid)."""
+    return {"normals": True} if normals else {}
+
+
 def _sampling_params(
-    layout: str, num_samplings: int | None, num_points: int | None, seed: int, limit: int | None
+    layout: str, num_samplings: int | None, num_points: int | None, seed: int, limit: int | None, normals: bool = False,
 ) -> dict:
     if layout in ("princeton_off", "scan_meshes"):
         default_s, default_p = MESH_DEFAULTS["stanford" if layout == "scan_meshes" else "modelnet40"]
         return {
             "num_samplings": num_samplings or default_s, "num_points": num_points or default_p, "seed": seed,
-            "method": METHOD, "normalization": NORMALIZATION, "limit": limit,
+            "method": METHOD, "normalization": NORMALIZATION, "limit": limit, **_normals_flag(normals),
         }
     _reject_options(
-        {"--num-samplings": num_samplings, "--num-points": num_points},
+        {"--num-samplings": num_samplings, "--num-points": num_points, "--normals": normals},
         f"the {layout} layout (its points are stored as provided: one sampling holding all of each shape's points)",
     )
     return {"num_samplings": 1, "method": AS_PROVIDED, "normalization": AS_PROVIDED, "limit": limit}
@@ -241,12 +247,13 @@ def _common_layout(dataset: str, sources: list[_Source]) -> str:
 def prepare_modelnet(
     dataset: str, sources: Sequence[Path], cache_root: Path, *, num_samplings: int | None = None,
     num_points: int | None = None, seed: int = 0, workers: int = 1, force: bool = False, limit: int | None = None,
+    normals: bool = False,
 ) -> Cache:
     """Build (or reuse) ``<cache_root>/<dataset>`` from ModelNet40 archives (folders or .zip files) of
     one layout; several are merged into one cache (:class:`~src.data.readers.MergedReader`)."""
     opened = _open_sources(sources)
     layout = _common_layout(dataset, opened)
-    sampling = _sampling_params(layout, num_samplings, num_points, seed, limit)
+    sampling = _sampling_params(layout, num_samplings, num_points, seed, limit, normals)
     out = cache_root / dataset
     expected = {
         "dataset": dataset, "source_layout": layout, "sampling": sampling,
@@ -308,9 +315,10 @@ def _first_per_category(entries: list[ShapeEntry], offset: int, limit: int | Non
 
 def build_synthetic_cache(
     cache_root: Path | None = None, num_train_per_category: int = 24, num_test_per_category: int = 8,
-    num_samplings: int = 10, num_points: int = 2048, seed: int = 0, force: bool = False,
+    num_samplings: int = 10, num_points: int = 2048, seed: int = 0, force: bool = False, normals: bool = False,
 ) -> Cache:
-    """Build (or reuse, when valid) ``<cache_root>/synthetic`` from :mod:`src.data.synthetic`.
+    """Build (or reuse, when valid) ``<cache_root>/synthetic`` from :mod:`src.data.synthetic` (with the
+    sampled faces' normals when ``normals``: ``data.build.normals=true``).
 
     The generator module's sha256 is part of the source fingerprint, so editing it rebuilds the cache.
     """
@@ -319,7 +327,7 @@ def build_synthetic_cache(
     sampling = {
         "num_samplings": num_samplings, "num_points": num_points, "seed": seed, "method": METHOD,
         "normalization": NORMALIZATION, "num_train_per_category": num_train_per_category,
-        "num_test_per_category": num_test_per_category,
+        "num_test_per_category": num_test_per_category, **_normals_flag(normals),
     }
     module_file = getattr(synthetic, "__file__", None)
     fingerprint = {"sha256": file_sha256(Path(module_file))} if module_file else {}
@@ -394,7 +402,8 @@ def _recorded_build(path: Path) -> dict | None:
         sources = [Path(p) for p in source.get("paths") or [source["path"]]]  # format 1 recorded one "path"
         build = {"sources": sources, "seed": sampling.get("seed", 0), "limit": sampling.get("limit")}
         if sampling["method"] != AS_PROVIDED:
-            build |= {"num_samplings": sampling["num_samplings"], "num_points": sampling["num_points"]}
+            build |= {"num_samplings": sampling["num_samplings"], "num_points": sampling["num_points"],
+                      "normals": bool(sampling.get("normals"))}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
     return build if sources and all(p.exists() for p in sources) else None
@@ -407,6 +416,7 @@ def prepare(
     dataset: str, *, source: Path | Sequence[Path] | None = None, cache_root: Path | None = None,
     num_samplings: int | None = None, num_points: int | None = None, seed: int = 0, workers: int = 1,
     download: bool = False, url: str | None = None, force: bool = False, limit: int | None = None,
+    normals: bool = False,
 ) -> Cache:
     """What the command line does; see the module docstring."""
     cache_root = Path(cache_root or default_cache_root())
@@ -418,7 +428,7 @@ def prepare(
         default_s, default_p = MESH_DEFAULTS["synthetic"]
         return build_synthetic_cache(
             cache_root, num_samplings=num_samplings or default_s, num_points=num_points or default_p,
-            seed=seed, force=force,
+            seed=seed, force=force, normals=normals,
         )
     _check_dataset(dataset)
     sources = [source] if isinstance(source, (str, os.PathLike)) else list(source or [])
@@ -437,7 +447,7 @@ def prepare(
         raise DatasetError(f"{dataset} needs --source PATH (a {archives} folder or .zip) or --download")
     return prepare_modelnet(
         dataset, sources, cache_root, num_samplings=num_samplings, num_points=num_points,
-        seed=seed, workers=workers, force=force, limit=limit,
+        seed=seed, workers=workers, force=force, limit=limit, normals=normals,
     )
 
 
@@ -463,6 +473,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--download", action="store_true", help="fetch the official archive into <cache-root>/downloads/")
     p.add_argument("--url", help="archive URL for --download (overrides the official one)")
     p.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
+    p.add_argument("--normals", action="store_true",
+                   help="mesh samplings: keep the sampled faces' normals (RPMNet's protocol; doubles the cache)")
     p.add_argument(
         "--limit", type=_positive_int, help="only the first N shapes of each category per split (smoke tests)"
     )
@@ -475,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
     return exit_code_of(lambda: prepare(
         args.dataset, source=args.source, cache_root=args.cache_root, num_samplings=args.num_samplings,
         num_points=args.num_points, seed=args.seed, workers=args.workers, download=args.download,
-        url=args.url, force=args.force, limit=args.limit,
+        url=args.url, force=args.force, limit=args.limit, normals=args.normals,
     ))
 
 
