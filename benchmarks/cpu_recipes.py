@@ -41,7 +41,8 @@ COMMON = [
 ]
 
 #: One factor at a time from ``base`` (width 0.25, per-iteration weights, batch 16, Adam 1e-3 with a
-#: ×0.1 step at 80 % of the steps). ``{steps}`` and ``{milestone}`` are filled from the budget.
+#: ×0.1 step at 80 % of the steps). ``{milestone}`` (80 % of the steps) and ``{warmup}`` (5 %) are
+#: filled from the budget.
 RECIPES: dict[str, dict] = {
     "base": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=1e-3"]},
     "width_0.5": {"model_scale": 0.5, "batch": 16, "overrides": ["model.lr=1e-3"]},
@@ -49,8 +50,12 @@ RECIPES: dict[str, dict] = {
     "batch_8": {"model_scale": 0.25, "batch": 8, "overrides": ["model.lr=1e-3"]},
     "batch_32": {"model_scale": 0.25, "batch": 32, "overrides": ["model.lr=1e-3"]},
     "lr_3e-3": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=3e-3"]},
+    "cosine_warmup": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=1e-3"],
+                      "schedule": ["~model.scheduler", "+model.scheduler={{name: cosine, warmup_steps: {warmup}}}"]},
+    "onecycle_3e-3": {"model_scale": 0.25, "batch": 16, "overrides": ["model.lr=3e-3"],
+                      "schedule": ["~model.scheduler", "+model.scheduler={{name: onecycle}}"]},
 }
-STEP_DECAY = ["model.lr_milestones=[{milestone}]", "model.lr_gamma=0.1"]
+STEP_DECAY = ["model.scheduler.milestones=[{milestone}]", "model.scheduler.gamma=0.1"]
 
 
 def probe_step_seconds(recipe: dict, points: int = 768, steps: int = 3) -> float:
@@ -80,8 +85,8 @@ def probe_step_seconds(recipe: dict, points: int = 768, steps: int = 3) -> float
 
 def recipe_command(name: str, recipe: dict, run_dir: Path, max_steps: int, val_every: int) -> list[str]:
     """The ``src.train`` command line of one recipe (resuming from ``last.ckpt`` when there is one)."""
-    milestone = max(1, int(0.8 * max_steps))
-    schedule = [o.format(milestone=milestone, steps=max_steps) for o in recipe.get("schedule", STEP_DECAY)]
+    milestone, warmup = max(1, int(0.8 * max_steps)), max(1, int(0.05 * max_steps))
+    schedule = [o.format(milestone=milestone, warmup=warmup) for o in recipe.get("schedule", STEP_DECAY)]
     command = [sys.executable, "-m", "src.train", *COMMON, f"model_scale={recipe['model_scale']}",
                f"data.batch_size={recipe['batch']}", f"trainer.max_steps={max_steps}",
                f"trainer.val_check_interval={val_every}", *recipe["overrides"], *schedule,

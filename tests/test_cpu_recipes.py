@@ -16,12 +16,37 @@ from src.callbacks import TrainingClock
 def test_command_has_budgeted_steps_a_step_decay_at_80_percent_and_resumes(tmp_path: Path):
     run_dir = tmp_path / "base"
     command = cpu_recipes.recipe_command("base", cpu_recipes.RECIPES["base"], run_dir, max_steps=1000, val_every=100)
-    assert "trainer.max_steps=1000" in command and "model.lr_milestones=[800]" in command
+    assert "trainer.max_steps=1000" in command and "model.scheduler.milestones=[800]" in command
     assert "data.batch_size=16" in command and not any(c.startswith("ckpt_path=") for c in command)
     (run_dir / "checkpoints").mkdir(parents=True)
     (run_dir / "checkpoints" / "last.ckpt").write_bytes(b"")
     resumed = cpu_recipes.recipe_command("base", cpu_recipes.RECIPES["base"], run_dir, max_steps=1000, val_every=100)
     assert resumed[-1] == f"ckpt_path={run_dir / 'checkpoints' / 'last.ckpt'}"
+
+
+def test_schedules_replace_the_whole_scheduler_block(tmp_path: Path):
+    command = cpu_recipes.recipe_command("cosine_warmup", cpu_recipes.RECIPES["cosine_warmup"], tmp_path, 1000, 100)
+    assert "~model.scheduler" in command and "+model.scheduler={name: cosine, warmup_steps: 50}" in command
+
+
+def test_every_recipe_composes_into_a_training_config(tmp_path: Path):
+    """Each recipe's overrides compose with src.train's config (catches a stale key such as an old schedule)."""
+    from hydra import compose, initialize_config_dir
+
+    from src.config import register_resolvers
+    from src.paths import REPO_ROOT
+
+    register_resolvers()
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        for name, recipe in cpu_recipes.RECIPES.items():
+            command = cpu_recipes.recipe_command(name, recipe, tmp_path / name, 1000, 100)
+            overrides = [o for o in command[3:] if not o.startswith(("hydra.", "task_name="))]
+            cfg = compose("config", overrides=overrides + [f"output_dir={tmp_path}"])
+            assert cfg.trainer.max_steps == 1000 and cfg.data.batch_size == recipe["batch"]
+            if "schedule" in recipe:
+                assert cfg.model.scheduler.name in name and "milestones" not in cfg.model.scheduler
+            else:
+                assert cfg.model.scheduler.name == "multistep" and list(cfg.model.scheduler.milestones) == [800]
 
 
 def _fake_run(root: Path, name: str, errors: list[float]) -> None:

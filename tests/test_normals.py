@@ -246,3 +246,22 @@ def test_synthetic_and_mesh_caches_keep_face_normals_when_asked(tmp_path, prince
     mesh = prepare("modelnet40", source=princeton_dir, cache_root=tmp_path / "m", num_samplings=2, num_points=32,
                    normals=True)
     assert mesh.split("train").normals.shape == mesh.split("train").points.shape
+
+
+def test_registration_module_hands_the_batch_normals_to_a_network_that_uses_them():
+    """RegistrationModule passes normals_src/normals_ref only to a network with uses_normals (RPMNet
+    normals=given): its training and evaluation steps run on a batch with normals; OMNet gets points only."""
+    from src.models.module import RegistrationModule
+
+    rng = torch.Generator().manual_seed(0)
+    points = torch.rand(2, 64, 3, generator=rng)
+    normals = torch.nn.functional.normalize(torch.randn(2, 64, 3, generator=rng), dim=-1)
+    batch = {"points_src": points, "points_ref": points.clone(), "transform_gt": torch.eye(4).expand(2, 4, 4),
+             "normals_src": normals, "normals_ref": normals.clone()}
+    given = RegistrationModule({"_target_": "baselines.learned.rpmnet.RPMNet", "width": 0.125, "num_neighbors": 8,
+                                "normals": "given"})
+    assert torch.isfinite(given.training_step(batch, 0))
+    assert given(points, points, normals, normals).shape == (2, 4, 4)
+    omnet = RegistrationModule({"_target_": "src.models.omnet.OMNet", "width": 0.0625})
+    assert omnet._normals(normals, normals) == {}
+    assert torch.isfinite(omnet.training_step(batch, 0))

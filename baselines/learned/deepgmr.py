@@ -20,11 +20,10 @@ README), not its code:
   weighted by π/σ², SVD with reflection fix) — see :func:`~baselines.learned.common.global_feature.gmm_register`;
 * loss: ``F.mse_loss(T₁₂ @ inv(T_gt), I) + F.mse_loss(T₂₁ @ T_gt, I)`` (mean over the 16 entries and
   the batch);
-* optimiser: Adam lr 1e-3, no weight decay, ReduceLROnPlateau(factor 0.5, min_lr 1e-6) on the
-  validation loss, batch 32, 100 epochs.
+* training recipe (Adam, ReduceLROnPlateau on the validation loss, batch, epochs, checkpoint):
+  ``conf/recipe/deepgmr.yaml``.
 
-Deviations: the plateau schedule cannot be expressed by RegistrationModule's MultiStepLR (the
-config keeps lr 1e-3 constant); RRI uses the exact tangent-plane projection (see
+Deviations: RRI uses the exact tangent-plane projection (see
 :func:`~baselines.learned.common.global_feature.rri_features`) and is computed in the network's
 forward instead of the data loader; small ``eps`` guards the GMM divisions; ``exact_procrustes``
 switches to the exact weighted least-squares solve; ``width`` scales the channels (1.0 = paper).

@@ -10,7 +10,7 @@ Facts taken from the authors' code (XiaoshuiHuang/fmr, ``model.py``, ``train.py`
 
 * encoder: PointNetLK's PointNet, 3-64-64-64-128-1024 (Conv1d + BatchNorm + ReLU), max pooling;
 * decoder: FC 1024-1024-512-256 (+ BatchNorm + ReLU) then FC 256 → 3·n and tanh, with n the
-  ``--num-points`` of the run (2,048 by default there; ``decoder_points`` here, see below);
+  ``--num-points`` of the run, its input size (``decoder_points`` here: :func:`cloud_size` of the data);
 * LK: step δ = 1e-2 per twist parameter, **learned** (``dt`` is a Parameter with requires_grad=True),
   10 iterations in training and testing, xtol 1e-7, both clouds mean-centred first;
 * BatchNorm: the features for the decoder come from the encoder in training mode (which also
@@ -19,12 +19,11 @@ Facts taken from the authors' code (XiaoshuiHuang/fmr, ``model.py``, ``train.py`
   template and of the source against their reconstructions (squared distances, mean of each
   direction, on the centred clouds) plus the batch mean of ‖G_est·G_gt⁻¹ − I‖²_F; the feature
   residual is *not* in this loss (it is only in ``--train-type 2``);
-* optimiser: Adam with PyTorch defaults (lr 1e-3), no weight decay, no schedule, batch 8 (its
-  default), 200 epochs.
+* training recipe (optimiser, batch, epochs, checkpoint selection): ``conf/recipe/fmr.yaml``.
 
 Framework mapping: the reference is the template, the source is moved; the estimate maps source →
-reference. ``decoder_points`` defaults to 768, the PRNet-manner cloud size (the official run used
-the input size); the Chamfer loss does not need equal sizes, so the RPMNet manner (717) works too.
+reference. ``conf/model/fmr.yaml`` sets ``decoder_points`` to the data's cloud size (768 in the PRNet
+manner, 717 in the RPMNet manner), as the official run; the class default is the PRNet manner's.
 
 Deviations: hidden Linears have no bias before BatchNorm (same function), a singular JᵀJ gives a
 zero update for that sample, ``width`` scales the encoder and decoder (1.0 = the paper's network).
@@ -32,6 +31,10 @@ zero update for that sample, ``width`` scales the encoder and decoder (1.0 = the
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -46,7 +49,17 @@ from baselines.learned.common.global_feature import (
     lk_register,
 )
 from baselines.learned.pointnetlk import pointnet_channels
+from src.data.transforms import build_pair_transforms
 from src.geometry import se3_inverse
+
+
+def cloud_size(pair: Mapping[str, Any]) -> int:
+    """Points in a source cloud of the pairs that ``data.pair`` describes: one pair drawn from a
+    random two-sampling shape by the data's own transforms, so it follows every pair option."""
+    rng = np.random.default_rng(0)
+    shape = rng.normal(size=(2, pair["num_points"], 3)).astype(np.float32)
+    sample = build_pair_transforms("independent_samplings", **pair)({"shape_points": shape}, rng)
+    return len(sample["points_src"])
 
 
 class FMR(nn.Module):

@@ -25,8 +25,8 @@ averaged over the source points with a true match (i* = its ground-truth corresp
 soft-elimination loss BCE(weight logits, [argmax_j S_ij = i*]); at the first iteration only, the
 mutual-supervision (negative-entropy) loss MSE(significance, Σ p log p) for the source (rows of
 softmax(S)) and the reference (columns), the targets detached.
-Optimiser (official ``main.py``): Adam, lr 1e-4, weight decay 1e-3, ×0.1 after epoch 30 of 40,
-batch 16 — see ``conf/model/idam.yaml``.
+Training recipe (official ``main.py``: optimiser, schedule, batch, epochs, checkpoint selection):
+``conf/recipe/idam.yaml``.
 
 Deviations: channel-last Linear layers instead of 1×1 convolutions; the weighted Procrustes
 centres both clouds on their weighted centroids (the code centres the covariance on the uniform

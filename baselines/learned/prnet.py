@@ -22,8 +22,8 @@ iteration i, discounted by 0.9^i, MSE(R_iᵀ R_gt, I) + MSE(t_i, t_gt) on the co
 + 0.1·mean|mean Φ_X − mean Φ_Y| (feature alignment), + 0.1·[MSE(R_ab R_ba, I) + MSE(t_ab, −t_ba)]
 on the iteration's own X→Y / Y→X estimates (cycle consistency; the code compares t_ab with −t_ba
 literally). There is no separate keypoint loss: the keypoint detector is learned through these terms.
-Optimiser (official ``main.py``): Adam, lr 1e-3, weight decay 1e-4, ×0.1 at epochs 30/60/80 of 100,
-batch 36 — see ``conf/model/prnet.yaml``.
+Training recipe (official ``main.py``: optimiser, schedule, batch, epochs, checkpoint selection):
+``conf/recipe/prnet.yaml``.
 
 Deviations: channel-last Linear layers instead of 1×1 convolutions; PyTorch's LayerNorm (see
 :mod:`baselines.learned.dcp`); batched float64 SVD with a sign(det) reflection fix; the Gumbel noise is

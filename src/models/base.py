@@ -6,6 +6,8 @@ Any network (OMNet, and later the learned baselines) plugs in by implementing tw
   ``"transforms"`` entry is the list of source→reference (B,4,4) estimates after each iteration
   (the last one is the prediction); ``transform_gt`` is given during training and validation for
   networks whose forward needs supervision signals (OMNet's mask labels).
+* a network that uses normals has a true ``uses_normals``; its forward then also gets the keywords
+  ``normals_src`` (B,N,3) and ``normals_ref`` (B,M,3) from the batch (``data.normals=cache``), or None.
 * ``loss(outputs, transform_gt) -> dict[str, Tensor]`` with the total under ``"loss"`` and its
   terms under other keys (logged as ``train/<key>``).
 """

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import inspect
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import hydra
@@ -10,21 +13,115 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
+from torch.optim import Optimizer
+from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
 from torchmetrics import MeanMetric
 
+from src.errors import ConfigError
 from src.metrics import RegistrationMetrics
+
+#: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
+SchedulerConfig = dict[str, Any]
+#: The number of optimiser steps of the whole run (asked only by schedules that need it).
+TotalSteps = Callable[[], int]
 
 
 def _plain(cfg: Any) -> Any:
     return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
 
 
+def _evaluate_calls(network: dict[str, Any]) -> dict[str, Any]:
+    """Arguments given as calls (``{_target_: fn, ...}``, e.g. FMR's decoder size from ``data.pair``)
+    replaced by their values, so that the checkpoint's network config holds plain numbers."""
+    return {key: hydra.utils.instantiate(value) if isinstance(value, dict) and "_target_" in value else value
+            for key, value in network.items()}
+
+
+def multistep(optimizer: Optimizer, total_steps: TotalSteps, milestones: Sequence[int], gamma: float = 0.1,
+              interval: str = "step") -> SchedulerConfig:
+    """×``gamma`` at each milestone, counted in optimiser steps or in epochs (``interval``): epochs
+    follow the dataset actually used, as the authors' epoch schedules do."""
+    if interval not in ("step", "epoch"):
+        raise ConfigError(f"model.scheduler.interval must be step or epoch, got {interval!r}")
+    return {"scheduler": MultiStepLR(optimizer, list(milestones), gamma), "interval": interval}
+
+
+def plateau(optimizer: Optimizer, total_steps: TotalSteps, monitor: str = "val/loss", factor: float = 0.1,
+            patience: int = 10, min_lr: float = 0.0) -> SchedulerConfig:
+    """×``factor`` when ``monitor`` (lower is better) has not improved for more than ``patience``
+    epochs, stepped once per epoch after its validation."""
+    scheduler = ReduceLROnPlateau(optimizer, mode="min", factor=factor, patience=patience, min_lr=min_lr)
+    return {"scheduler": scheduler, "interval": "epoch", "monitor": monitor}
+
+
+@dataclass
+class WarmupCosine:
+    """Learning-rate factor of step ``k``: linear warm-up to 1 over ``warmup_steps``, then a cosine
+    down to ``final_factor`` at ``total_steps``."""
+
+    warmup_steps: int
+    total_steps: int
+    final_factor: float
+
+    def __call__(self, step: int) -> float:
+        if step < self.warmup_steps:
+            return (step + 1) / self.warmup_steps
+        progress = min(1.0, (step - self.warmup_steps) / max(1, self.total_steps - self.warmup_steps))
+        return self.final_factor + (1.0 - self.final_factor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def cosine(optimizer: Optimizer, total_steps: TotalSteps, warmup_steps: int = 0,
+           min_lr: float = 0.0) -> SchedulerConfig:
+    """Linear warm-up over ``warmup_steps``, then cosine annealing to ``min_lr`` at the end of the run."""
+    factor = WarmupCosine(warmup_steps, total_steps(), min_lr / optimizer.defaults["lr"])
+    return {"scheduler": LambdaLR(optimizer, factor), "interval": "step"}
+
+
+def onecycle(optimizer: Optimizer, total_steps: TotalSteps, pct_start: float = 0.3, div_factor: float = 25.0,
+             final_div_factor: float = 1e4) -> SchedulerConfig:
+    """PyTorch's one-cycle over the run: lr/``div_factor`` up to lr during ``pct_start`` of it, then
+    down to lr/(``div_factor``·``final_div_factor``) (Adam's β₁ cycles too, PyTorch's default)."""
+    scheduler = OneCycleLR(optimizer, max_lr=optimizer.defaults["lr"], total_steps=total_steps(), pct_start=pct_start,
+                           div_factor=div_factor, final_div_factor=final_div_factor)
+    return {"scheduler": scheduler, "interval": "step"}
+
+
+#: ``model.scheduler.name`` -> builder; the other keys of ``model.scheduler`` are its keyword arguments.
+SCHEDULERS: dict[str, Callable[..., SchedulerConfig]] = {
+    "multistep": multistep, "plateau": plateau, "cosine": cosine, "onecycle": onecycle}
+
+
+def check_scheduler(spec: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """``model.scheduler`` as a plain dict, checked (ConfigError naming the choices); None = constant lr."""
+    if spec is None:
+        return None
+    spec = dict(spec)
+    builder = SCHEDULERS.get(spec.get("name"))
+    if builder is None:
+        raise ConfigError(f"model.scheduler.name must be one of {sorted(SCHEDULERS)}, got {spec.get('name')!r}")
+    options = {k: v for k, v in spec.items() if k != "name"}
+    signature = inspect.signature(builder)
+    try:
+        signature.bind(None, None, **options)
+    except TypeError as err:
+        allowed = list(signature.parameters)[2:]
+        raise ConfigError(
+            f"model.scheduler {spec['name']} takes {allowed}, got {sorted(options)} ({err}); to switch schedulers, "
+            "replace the whole block: ~model.scheduler '+model.scheduler={name: cosine, warmup_steps: 500}'"
+        ) from None
+    return spec
+
+
 class RegistrationModule(L.LightningModule):
-    """Wraps a network (see :mod:`src.models.base`) with its loss, the paper's metrics and Adam.
+    """Wraps a network (see :mod:`src.models.base`) with its loss, the paper's metrics, Adam and a
+    learning-rate schedule.
 
     ``network`` is the Hydra config of the network (``_target_`` + arguments), stored in the
-    checkpoint so :meth:`load_from_checkpoint` rebuilds it without the original config. The best
-    checkpoint is chosen on ``val/score`` = 0.01·Error(R) + Error(t) (official code).
+    checkpoint so :meth:`load_from_checkpoint` rebuilds it without the original config.
+    ``scheduler`` is ``{name: <one of SCHEDULERS>, **its arguments}`` or None (constant lr). Each
+    method's optimiser, schedule, batch, budget and checkpoint selection come from its recipe,
+    ``conf/recipe/<model>.yaml`` (docs/recipes.md). ``lr_milestones``/``lr_gamma`` (step milestones)
+    are what checkpoints and model configs written before the recipes hold.
     """
 
     def __init__(
@@ -32,15 +129,20 @@ class RegistrationModule(L.LightningModule):
         network: Mapping[str, Any],
         lr: float = 1e-4,
         weight_decay: float = 0.0,
-        lr_milestones: Sequence[int] = (220_000,),
-        lr_gamma: float = 0.1,
+        scheduler: Mapping[str, Any] | None = None,
         euler_seq: str = "zyx",
         compile: bool = False,
+        lr_milestones: Sequence[int] | None = None,
+        lr_gamma: float = 0.1,
     ) -> None:
         super().__init__()
-        network = _plain(network)
-        self.save_hyperparameters({"network": network, "lr": lr, "weight_decay": weight_decay,
-                                   "lr_milestones": list(lr_milestones), "lr_gamma": lr_gamma,
+        network = _evaluate_calls(_plain(network))
+        scheduler = check_scheduler(_plain(scheduler))
+        if lr_milestones is not None:
+            if scheduler is not None:
+                raise ConfigError("give model.scheduler or the older model.lr_milestones/lr_gamma, not both")
+            scheduler = {"name": "multistep", "milestones": list(lr_milestones), "gamma": lr_gamma, "interval": "step"}
+        self.save_hyperparameters({"network": network, "lr": lr, "weight_decay": weight_decay, "scheduler": scheduler,
                                    "euler_seq": euler_seq, "compile": compile})
         self.network: nn.Module = hydra.utils.instantiate(network)
         self.val_metrics = RegistrationMetrics(euler_seq)
@@ -58,19 +160,31 @@ class RegistrationModule(L.LightningModule):
         if self.hparams["compile"] and not isinstance(self.network, torch._dynamo.eval_frame.OptimizedModule):
             self.network = torch.compile(self.network)
 
-    def forward(self, points_src: Tensor, points_ref: Tensor) -> Tensor:
+    def _normals(self, normals_src: Tensor | None, normals_ref: Tensor | None) -> dict[str, Tensor | None]:
+        """The normals keywords for a network that uses them (``uses_normals``), else none."""
+        if getattr(self.network, "uses_normals", False):
+            return {"normals_src": normals_src, "normals_ref": normals_ref}
+        return {}
+
+    def _run(self, batch: dict[str, Tensor]) -> dict:
+        """The network on a batch, with the ground truth (supervision signals) and its normals if it uses them."""
+        normals = self._normals(batch.get("normals_src"), batch.get("normals_ref"))
+        return self.network(batch["points_src"], batch["points_ref"], batch["transform_gt"], **normals)
+
+    def forward(self, points_src: Tensor, points_ref: Tensor, normals_src: Tensor | None = None,
+                normals_ref: Tensor | None = None) -> Tensor:
         """Final source→reference transform (B,4,4)."""
-        return self.network(points_src, points_ref)["transforms"][-1]
+        return self.network(points_src, points_ref, **self._normals(normals_src, normals_ref))["transforms"][-1]
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        outputs = self.network(batch["points_src"], batch["points_ref"], batch["transform_gt"])
+        outputs = self._run(batch)
         losses = self.network.loss(outputs, batch["transform_gt"])
         self.log_dict({f"train/{k}": v.detach() for k, v in losses.items()}, prog_bar=False, batch_size=batch["points_src"].shape[0])
         self.log("train_loss", losses["loss"].detach(), prog_bar=True, logger=False)
         return losses["loss"]
 
     def _evaluate(self, batch: dict[str, Tensor], metrics: RegistrationMetrics, prefix: str) -> None:
-        outputs = self.network(batch["points_src"], batch["points_ref"], batch["transform_gt"])
+        outputs = self._run(batch)
         losses = self.network.loss(outputs, batch["transform_gt"])
         batch_size = batch["points_src"].shape[0]
         self.eval_losses[prefix].update(losses["loss"].detach(), weight=batch_size)
@@ -94,7 +208,19 @@ class RegistrationModule(L.LightningModule):
         self.log_dict({f"test/{k}": v for k, v in self.test_results.items()})
         self.test_metrics.reset()
 
-    def configure_optimizers(self):
+    def configure_optimizers(self) -> dict[str, Any]:
         optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams["lr"], weight_decay=self.hparams["weight_decay"])
-        scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, self.hparams["lr_milestones"], self.hparams["lr_gamma"])
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+        spec = self.hparams["scheduler"]
+        if spec is None:
+            return {"optimizer": optimizer}
+        options = {k: v for k, v in spec.items() if k != "name"}
+        scheduler = SCHEDULERS[spec["name"]](optimizer, self._total_steps, **options)
+        return {"optimizer": optimizer, "lr_scheduler": scheduler}
+
+    def _total_steps(self) -> int:
+        """Optimiser steps of the whole run (trainer.max_steps, or epochs × batches per epoch)."""
+        total = self.trainer.estimated_stepping_batches
+        if not math.isfinite(total):
+            raise ConfigError(f"model.scheduler {self.hparams['scheduler']['name']} needs the run's length: "
+                              "set trainer.max_steps or trainer.max_epochs")
+        return int(total)

@@ -105,7 +105,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
             "fit_seconds_last_session": results.get("fit_seconds"),
             "resumed_from": results.get("resumed_from"),
             "batch_size": config["data"]["batch_size"],
-            "optimizer": {k: full["hyper_parameters"][k] for k in ("lr", "weight_decay", "lr_milestones", "lr_gamma")},
+            "optimizer": {k: full["hyper_parameters"][k] for k in ("lr", "weight_decay", "scheduler")},
             "precision": config["trainer"]["precision"],
             "accelerator": config["trainer"]["accelerator"],
             "seed": config["seed"],

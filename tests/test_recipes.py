@@ -1,0 +1,273 @@
+"""Each method's training recipe (conf/recipe/<model>.yaml) is what `model=<name>` trains with: its
+batch, budget, optimiser, schedule and checkpoint selection reach the datamodule, the trainer and
+RegistrationModule; explicit overrides still win; the schedules RegistrationModule builds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import lightning as L
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from registration_helpers import reload_via_checkpoint
+from test_entrypoints import _cfg
+from test_resume import RUN, TOTAL_STEPS, _assert_same, _weights
+from torch import nn
+from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
+from torch.utils.data import DataLoader
+
+from src.config import register_resolvers
+from src.errors import ConfigError
+from src.models.module import RegistrationModule, WarmupCosine
+from src.runtime import build_trainer
+from src.train import train
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+MODELS = sorted(p.stem for p in (CONF / "model").glob("*.yaml"))
+RECIPES = sorted(p.stem for p in (CONF / "recipe").glob("*.yaml"))
+SCHEDULER_TYPES = {"multistep": MultiStepLR, "plateau": ReduceLROnPlateau, "cosine": LambdaLR, "onecycle": OneCycleLR}
+
+# The authors' recipes (docs/recipes.md): (batch, max_steps, max_epochs, lr, weight decay, scheduler, selection).
+AUTHORS = {
+    "omnet": (64, 260000, -1, 1e-4, 0.0,
+              {"name": "multistep", "interval": "step", "milestones": [220000], "gamma": 0.1}, "val/score"),
+    "dcp": (32, -1, 250, 1e-3, 1e-4,
+            {"name": "multistep", "interval": "epoch", "milestones": [74, 149, 199], "gamma": 0.1}, "val/loss"),
+    "prnet": (36, -1, 100, 1e-3, 1e-4,
+              {"name": "multistep", "interval": "epoch", "milestones": [29, 59, 79], "gamma": 0.1}, "val/loss"),
+    "idam": (16, -1, 40, 1e-4, 1e-3,
+             {"name": "multistep", "interval": "epoch", "milestones": [30], "gamma": 0.1}, None),
+    "fmr": (8, -1, 200, 1e-3, 0.0, None, "val/loss"),
+    "deepgmr": (32, -1, 100, 1e-3, 0.0,
+                {"name": "plateau", "monitor": "val/loss", "factor": 0.5, "patience": 10, "min_lr": 1e-6}, None),
+}
+register_resolvers()
+
+
+def _compose(tmp_path: Path, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=[f"output_dir={tmp_path / 'run'}", f"data.cache_root={tmp_path / 'cache'}",
+                                            "trainer.accelerator=cpu", "model_scale=0.0625", *overrides])
+
+
+def _assert_scheduler(module: RegistrationModule, spec: dict | None) -> None:
+    """``configure_optimizers`` builds the scheduler that ``spec`` (a recipe's model.scheduler) names."""
+    built = module.configure_optimizers()
+    if spec is None:
+        assert "lr_scheduler" not in built
+        return
+    config, scheduler = built["lr_scheduler"], built["lr_scheduler"]["scheduler"]
+    assert type(scheduler) is SCHEDULER_TYPES[spec["name"]]
+    if spec["name"] == "multistep":
+        assert sorted(scheduler.milestones.elements()) == spec["milestones"] and scheduler.gamma == spec["gamma"]
+        assert config["interval"] == spec["interval"]
+    if spec["name"] == "plateau":
+        assert (scheduler.factor, scheduler.patience, scheduler.min_lrs) == (spec["factor"], spec["patience"],
+                                                                             [spec["min_lr"]])
+        assert config["interval"] == "epoch" and config["monitor"] == spec["monitor"]
+
+
+def test_each_listed_method_has_a_recipe_and_each_recipe_a_model():
+    assert set(AUTHORS) <= set(RECIPES) <= set(MODELS)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_every_model_config_composes_with_or_without_a_recipe(name, tmp_path):
+    cfg = _compose(tmp_path, f"model={name}")
+    assert cfg.data.batch_size >= 1 and (cfg.trainer.max_steps > 0 or cfg.trainer.max_epochs > 0)
+
+
+def _recipe(name: str):
+    """``conf/recipe/<name>.yaml`` composed on its own (with the recipes it extends)."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(f"recipe/{name}")
+
+
+def _leaves(node, prefix: str = ""):
+    """(dotted key, value) of every leaf of a plain nested dict."""
+    for key, value in node.items():
+        if isinstance(value, dict) and value:
+            yield from _leaves(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+@pytest.mark.parametrize("name", RECIPES)
+def test_recipe_reaches_the_datamodule_trainer_and_module(name, tmp_path):
+    recipe = _recipe(name)
+    cfg = _compose(tmp_path, f"model={name}")
+    for key, value in _leaves(OmegaConf.to_container(recipe)):
+        assert OmegaConf.select(cfg, key) == value, key
+    datamodule, trainer = hydra.utils.instantiate(cfg.data), build_trainer(cfg)
+    assert datamodule.batch_size == recipe.data.batch_size
+    assert (trainer.max_steps, trainer.max_epochs) == (recipe.trainer.max_steps, recipe.trainer.max_epochs)
+    assert trainer.checkpoint_callback.monitor == recipe.callbacks.checkpoint.monitor
+    module = hydra.utils.instantiate(cfg.model)
+    if isinstance(module, RegistrationModule):  # (a model may bring its own LightningModule)
+        assert (module.hparams["lr"], module.hparams["weight_decay"]) == (recipe.model.lr, recipe.model.weight_decay)
+        spec = OmegaConf.to_container(recipe.model).get("scheduler")
+        assert module.hparams["scheduler"] == spec
+        _assert_scheduler(module, spec)
+
+
+@pytest.mark.parametrize("name", sorted(AUTHORS))
+def test_default_recipe_is_the_authors(name, tmp_path):
+    batch, max_steps, max_epochs, lr, weight_decay, scheduler, monitor = AUTHORS[name]
+    cfg = _compose(tmp_path, f"model={name}")
+    assert (cfg.data.batch_size, cfg.trainer.max_steps, cfg.trainer.max_epochs) == (batch, max_steps, max_epochs)
+    assert (cfg.model.lr, cfg.model.weight_decay, cfg.callbacks.checkpoint.monitor) == (lr, weight_decay, monitor)
+    assert (OmegaConf.to_container(cfg.model.scheduler) if cfg.model.scheduler is not None else None) == scheduler
+
+
+def test_explicit_overrides_win_over_the_recipe(tmp_path):
+    cfg = _compose(tmp_path, "model=dcp", "data.batch_size=8", "trainer.max_epochs=3", "model.lr=0.01",
+                   "model.scheduler.milestones=[1]", "callbacks.checkpoint.monitor=val/score")
+    datamodule, trainer = hydra.utils.instantiate(cfg.data), build_trainer(cfg)
+    assert datamodule.batch_size == 8 and trainer.max_epochs == 3 and trainer.checkpoint_callback.monitor == "val/score"
+    module = hydra.utils.instantiate(cfg.model)
+    assert module.hparams["lr"] == 0.01
+    _assert_scheduler(module, {"name": "multistep", "interval": "epoch", "milestones": [1], "gamma": 0.1})
+
+
+def test_trainer_groups_keep_the_recipe_and_smoke_overrides_it(tmp_path):
+    gpu = _compose(tmp_path, "model=dcp", "trainer=gpu")
+    assert (gpu.data.batch_size, gpu.trainer.max_steps, gpu.trainer.max_epochs) == (32, -1, 250)
+    smoke = _compose(tmp_path, "model=dcp", "trainer=smoke")
+    assert (smoke.data.batch_size, smoke.trainer.max_steps, smoke.model.lr) == (8, 16, 1e-3)
+    demo = _compose(tmp_path, "+exp=unseen_shapes", "data=synthetic", "trainer=smoke")
+    assert (demo.data.batch_size, demo.trainer.max_steps, demo.model.lr) == (8, 16, 1e-3)
+
+
+def test_another_recipe_can_be_chosen(tmp_path):
+    cfg = _compose(tmp_path, "model=dcp", "recipe=omnet")
+    assert cfg.model.network._target_ == "baselines.learned.dcp.DCP"
+    assert (cfg.data.batch_size, cfg.trainer.max_steps, cfg.model.scheduler.milestones) == (64, 260000, [220000])
+
+
+@pytest.mark.parametrize(("partial", "points"), [("prnet", 768), ("rpmnet", 717)])
+def test_fmr_decoder_reconstructs_the_datas_cloud_size(partial, points, tmp_path):
+    module = hydra.utils.instantiate(_compose(tmp_path, "model=fmr", f"partial={partial}").model)
+    assert module.hparams["network"]["decoder_points"] == points
+    assert module.network.decoder.out.out_features == 3 * points
+    assert reload_via_checkpoint(module, tmp_path / "fmr.ckpt").network.decoder.out.out_features == 3 * points
+
+
+# --- the schedules, stepped by Lightning on a one-parameter network --------------------------------
+
+
+class Translation(nn.Module):
+    """A translation-only network; ``flat``: its loss is 1 whatever it predicts (no progress)."""
+
+    def __init__(self, flat: bool = False) -> None:
+        super().__init__()
+        self.flat = flat
+        self.t = nn.Parameter(torch.zeros(3))
+
+    def forward(self, points_src, points_ref, transform_gt=None) -> dict:
+        rows = torch.cat([torch.eye(3), self.t[:, None]], dim=1)
+        transform = torch.cat([rows, torch.tensor([[0.0, 0, 0, 1]])])
+        return {"transforms": [transform.expand(points_src.shape[0], 4, 4)]}
+
+    def loss(self, outputs: dict, transform_gt) -> dict:
+        error = ((outputs["transforms"][-1][:, :3, 3] - transform_gt[:, :3, 3]) ** 2).mean()
+        return {"loss": error * 0 + 1 if self.flat else error}
+
+
+class LearningRates(L.Callback):
+    """The learning rate of every training step."""
+
+    def __init__(self) -> None:
+        self.rates: list[float] = []
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
+        self.rates.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+
+def _pairs(count: int) -> DataLoader:
+    gt = torch.eye(4)
+    gt[:3, 3] = torch.tensor([0.1, -0.2, 0.3])
+    pair = {"points_src": torch.rand(8, 3), "points_ref": torch.rand(8, 3), "transform_gt": gt}
+    return DataLoader([pair] * count, batch_size=1)
+
+
+def _fit(scheduler: dict | None, flat: bool = False, **limits) -> tuple[list[float], RegistrationModule]:
+    """Learning rates of a fit at lr 1 on 3 batches an epoch (validation: 1 batch, every epoch)."""
+    module = RegistrationModule({"_target_": f"{__name__}.Translation", "flat": flat}, lr=1.0, scheduler=scheduler)
+    rates = LearningRates()
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, num_sanity_val_steps=0, callbacks=[rates], **limits)
+    trainer.fit(module, train_dataloaders=_pairs(3), val_dataloaders=_pairs(1))
+    return rates.rates, module
+
+
+def test_multistep_in_epochs_follows_the_batches_per_epoch():
+    rates, _ = _fit({"name": "multistep", "interval": "epoch", "milestones": [1], "gamma": 0.1}, max_epochs=2)
+    assert rates == pytest.approx([1.0] * 3 + [0.1] * 3)
+
+
+def test_plateau_halves_after_each_epoch_without_validation_progress():
+    spec = {"name": "plateau", "monitor": "val/loss", "factor": 0.5, "patience": 0, "min_lr": 0.3}
+    rates, _ = _fit(spec, flat=True, max_epochs=4)
+    assert rates == pytest.approx([1.0] * 6 + [0.5] * 3 + [0.3] * 3)  # epoch 1 (0-based) is the first without progress
+
+
+def test_cosine_warms_up_then_anneals_over_the_epochs_of_the_run():
+    rates, module = _fit({"name": "cosine", "warmup_steps": 2, "min_lr": 0.1}, max_epochs=4)
+    assert module.lr_schedulers().lr_lambdas[0].total_steps == 12  # 4 epochs of 3 batches
+    assert rates[:3] == pytest.approx([0.5, 1.0, 1.0])
+    assert all(a > b for a, b in zip(rates[2:], rates[3:])) and rates[-1] > 0.1
+    assert WarmupCosine(2, 12, 0.1)(12) == pytest.approx(0.1)
+
+
+def test_onecycle_spans_the_run():
+    rates, _ = _fit({"name": "onecycle", "pct_start": 0.25, "div_factor": 10.0}, max_steps=8)
+    assert len(rates) == 8 and rates[0] == pytest.approx(0.1) and max(rates) == pytest.approx(1.0)
+    assert rates.index(max(rates)) == 1 and rates[-1] < rates[0]
+
+
+def test_older_step_milestones_are_a_multistep_schedule():
+    module = RegistrationModule({"_target_": f"{__name__}.Translation"}, lr_milestones=[5], lr_gamma=0.5)
+    assert module.hparams["scheduler"] == {"name": "multistep", "milestones": [5], "gamma": 0.5, "interval": "step"}
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"scheduler": {"name": "exponential"}}, "must be one of"),
+    ({"scheduler": {"name": "cosine", "milestones": [3]}}, "cosine takes"),
+    ({"scheduler": {"name": "multistep", "milestones": [3]}, "lr_milestones": [3]}, "not both"),
+])
+def test_bad_scheduler_configs_are_refused(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        RegistrationModule({"_target_": f"{__name__}.Translation"}, **kwargs)
+
+
+def test_multistep_counts_steps_or_epochs_only():
+    module = RegistrationModule({"_target_": f"{__name__}.Translation"},
+                                scheduler={"name": "multistep", "milestones": [3], "interval": "epochs"})
+    with pytest.raises(ConfigError, match="step or epoch"):
+        module.configure_optimizers()
+
+
+def test_a_schedule_over_the_run_needs_its_length():
+    with pytest.raises(ConfigError, match="needs the run's length"):
+        _fit({"name": "cosine"}, max_steps=-1, max_epochs=-1)
+
+
+@pytest.mark.parametrize("schedule", [
+    ("~model.scheduler", "+model.scheduler={name: cosine, warmup_steps: 2}"),
+    ("~model.scheduler", "+model.scheduler={name: onecycle}"),
+    ("model=deepgmr", "model.scheduler.patience=0"),
+], ids=["cosine", "onecycle", "plateau"])
+def test_schedules_resume_bit_for_bit(schedule, tmp_path):
+    """Killed after the first epoch's end (step 8 of 9; 7 steps an epoch), resumed from last.ckpt."""
+    run = [*RUN, *schedule, f"trainer.max_steps={TOTAL_STEPS}"]
+    train(_cfg(tmp_path, *run, f"output_dir={tmp_path / 'full'}"))
+    kill = ["+callbacks.kill._target_=test_resume.KillAt", "+callbacks.kill.step=8"]
+    with pytest.raises(RuntimeError, match="killed at step 8"):
+        train(_cfg(tmp_path, *run, *kill, f"output_dir={tmp_path / 'killed'}"))
+    at_stop = _weights(tmp_path / "killed")
+    train(_cfg(tmp_path, *run, f"output_dir={tmp_path / 'killed'}",
+               f"ckpt_path={tmp_path / 'killed' / 'checkpoints' / 'last.ckpt'}"))
+    _assert_same(_weights(tmp_path / "killed"), _weights(tmp_path / "full"), at_stop)
