@@ -7,7 +7,9 @@ Every job directory (``<sweep dir>/<job num>/``) is read: ``.hydra/overrides.yam
 changed), ``config_resolved.yaml`` (everything else), ``metrics.json`` (test metrics) and
 ``failure.json`` (written by a job that raised, see ``on_failure`` in src/train.py). A job with
 neither metrics nor a failure record was killed (timeout, out of memory, segfault), is still
-running, or ran with ``test_after_fit=false``; it is reported as ``missing``. With the sweep's
+running, or ran with ``test_after_fit=false``; it is reported as ``missing``. A job that failed
+before writing ``config_resolved.yaml`` (e.g. on an invalid value) is described by its overrides
+(``.hydra/overrides.yaml``, else the ones ``failure.json`` records). With the sweep's
 ``multirun.yaml`` the number of jobs the sweep should have produced is checked as well.
 
 Columns of the tidy frame (``results.parquet`` / ``results.csv``): ``sweep``, ``job``,
@@ -157,6 +159,8 @@ def read_job(job_dir: Path) -> dict[str, Any]:
     failures = sorted(job_dir.glob("failure*.json"))
     if failures:
         record, problem = _read_json(failures[0])
+        if not info["overrides"]:  # no .hydra folder (hydra.output_subdir=null): the failure record has them
+            info["overrides"] = dict(parse_override(str(o)) for o in (record or {}).get("overrides", []))
         info["status"] = "failed"
         info["reason"] = problem or (record or {}).get("reason") or (record or {}).get("error_type", "failed")
         if failures[0].name != "failure.json":
@@ -176,7 +180,12 @@ def read_job(job_dir: Path) -> dict[str, Any]:
 
 
 def _describe(job: dict[str, Any], cfg: DictConfig | None) -> dict[str, Any]:
+    """The standard columns of a job: from its resolved config, else its metrics' context, else its
+    overrides (a job that failed before resolving its config, e.g. on an invalid value)."""
     row = {name: _select(cfg, path) for name, path in STANDARD_COLUMNS.items()}
+    for name, path in STANDARD_COLUMNS.items():
+        if row[name] is None and path in job["overrides"]:
+            row[name] = _plain_value(job["overrides"][path])
     context = job.get("context", {})
     for name in ("dataset", "sampling", "partial"):
         if row[name] is None and name in context:

@@ -27,7 +27,8 @@ Outputs (``output_dir``, default ``outputs/grid/<benchmark.name>/``):
   cell keys, ``pair`` (index in the test set), ``transform`` / ``transform_gt`` (16 floats, row-major),
   ``seconds``, ``failed``, ``reason`` and per-pair errors (``Error(R)``, ``Error(t)``, ``MAE(R)``,
   ``MAE(t)``, ``chamfer``); next to it ``<same>.json``: the cell's definition, metrics and timing,
-  written last (a cell counts as finished when both exist). ``hash`` covers everything that defines
+  written last (a cell counts as finished when both exist and read back; a damaged file is reported
+  in a ``warning:`` line and its cell recomputed). ``hash`` covers everything that defines
   the cell (method and its options, checkpoint contents, test-set definition and data content hash,
   number of pairs, timeout), so re-running reuses finished cells and recomputes changed ones.
 * ``results.parquet`` / ``results.csv``: the tidy table of this run's cells — ``method, method_id,
@@ -37,8 +38,8 @@ Outputs (``output_dir``, default ``outputs/grid/<benchmark.name>/``):
 * ``pairs.parquet``: the per-pair rows of this run's cells together.
 * ``table.md`` / ``table.tex``: the paper's Table-1 layout via :mod:`benchmarks.tables`.
 
-Bad input (unknown method or experiment, missing checkpoint, a test set that was never prepared, a
-pair with fewer than 3 points) stops with one ``error: ...`` line and exit status 2.
+Bad input (unknown method or experiment, an invalid data or model value, missing checkpoint, a test
+set that was never prepared, a degenerate pair) stops with one ``error: ...`` line and exit status 2.
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ from baselines import PairResult, check_cloud, resolve_registrator, run_pairs
 from baselines.base import Registrator
 from src.config import euler_seq_for, register_resolvers
 from src.errors import CheckpointError, ConfigError, PointCloudError
+from src.files import write_atomic
 
 # torch, pandas, torchmetrics and lightning are imported where they are used: the worker processes
 # of run_pairs (spawned) re-import this module, and a light module keeps their start-up short.
@@ -96,16 +98,20 @@ def display_name(method: str) -> str:
 
 
 def compose_experiment(overrides: Sequence[str]) -> DictConfig:
-    """``conf/config.yaml`` composed with ``overrides`` (inside a Hydra app: its own search path)."""
+    """``conf/config.yaml`` composed with ``overrides`` (inside a Hydra app: its own search path),
+    checked by :func:`src.validation.validate_config`."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
 
+    from src.validation import validate_config
+
     try:
         if GlobalHydra.instance().is_initialized():
-            return compose("config", overrides=list(overrides))
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            return compose("config", overrides=list(overrides))
+            cfg = compose("config", overrides=list(overrides))
+        else:
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                cfg = compose("config", overrides=list(overrides))
     except HydraException as err:
         experiment = next((o.split("=", 1)[1] for o in overrides if o.startswith("+exp=")), None)
         available = sorted(p.stem for p in (CONF_DIR / "exp").glob("*.yaml"))
@@ -113,6 +119,8 @@ def compose_experiment(overrides: Sequence[str]) -> DictConfig:
             raise ConfigError(f"unknown experiment '{experiment}'; available: {', '.join(available)}") from None
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot compose the test set with overrides {list(overrides)}: {first}") from None
+    validate_config(cfg)
+    return cfg
 
 
 def _command_line_data_overrides() -> list[str]:
@@ -293,12 +301,6 @@ def _digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _write_atomic_bytes(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
-
-
 @dataclass
 class Cell:
     method: str
@@ -326,14 +328,30 @@ class Cell:
     def key(self) -> str:
         return f"{self.method}/{self.test_set.key}"
 
-    def finished(self) -> bool:
+    def load(self) -> dict[str, Any] | None:
+        """The finished cell's summary, or None if it must be computed: never run, interrupted (no
+        JSON yet), or a file that does not read back (with a warning)."""
+        import pandas as pd
+        import pyarrow as pa
+
         if not (self.pairs_path.is_file() and self.summary_path.is_file()):
-            return False
+            return None
         try:
             summary = json.loads(self.summary_path.read_text())
-        except (OSError, ValueError):
-            return False
-        return summary.get("digest") == self.digest and summary.get("complete") is True
+        except (OSError, ValueError) as err:
+            return self._damaged(self.summary_path, f"{type(err).__name__}: {err}")
+        if summary.get("digest") != self.digest or summary.get("complete") is not True:
+            return None
+        try:
+            frame = pd.read_parquet(self.pairs_path)
+        except (OSError, ValueError, pa.ArrowException) as err:
+            return self._damaged(self.pairs_path, type(err).__name__)
+        if len(frame) != summary.get("n_pairs"):
+            return self._damaged(self.pairs_path, f"{len(frame)} rows for {summary.get('n_pairs')} pairs")
+        return summary
+
+    def _damaged(self, path: Path, problem: str) -> None:
+        print(f"warning: cell {self.key}: {path.name} is damaged ({problem}); recomputing it", file=sys.stderr)
 
 
 def cell_metrics(
@@ -414,7 +432,7 @@ def finish_cell(cell: Cell, results: Sequence[PairResult], wall: float) -> dict[
         **{name: errors[name] for name in PAIR_ERROR_COLUMNS},
     })
     cell.folder.mkdir(parents=True, exist_ok=True)
-    _write_atomic_bytes(cell.pairs_path, lambda p: frame.to_parquet(p, index=False))
+    write_atomic(cell.pairs_path, lambda p: frame.to_parquet(p, index=False))
     n_failed = int(frame["failed"].sum())
     summary = {
         "digest": cell.digest,
@@ -436,7 +454,7 @@ def finish_cell(cell: Cell, results: Sequence[PairResult], wall: float) -> dict[
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "complete": True,
     }
-    _write_atomic_bytes(cell.summary_path, lambda p: p.write_text(json.dumps(summary, indent=2, default=str)))
+    write_atomic(cell.summary_path, lambda p: p.write_text(json.dumps(summary, indent=2, default=str)))
     return summary
 
 
@@ -578,7 +596,7 @@ def run_grid(cfg: DictConfig) -> GridResult:
     output_dir = Path(str(cfg.output_dir))
     cells, notes = plan(cfg)
     output_dir.mkdir(parents=True, exist_ok=True)
-    done = {cell.digest: json.loads(cell.summary_path.read_text()) for cell in cells if cell.finished()}
+    done = {cell.digest: loaded for cell in cells if (loaded := cell.load()) is not None}
     pending = [cell for cell in cells if cell.digest not in done]
     with tqdm(total=len(cells), initial=len(done), disable=not cfg.progress, desc="grid", unit="cell", dynamic_ncols=True) as bar:
         for call in _calls(pending, cfg.get("pairs_per_call")):
@@ -589,9 +607,9 @@ def run_grid(cfg: DictConfig) -> GridResult:
     summaries = [done[cell.digest] for cell in cells]
     tidy = pd.DataFrame([row for s in summaries for row in tidy_rows(s)], columns=list(TIDY_COLUMNS))
     pairs = pd.concat([pd.read_parquet(cell.pairs_path) for cell in cells], ignore_index=True)
-    _write_atomic_bytes(output_dir / "results.parquet", lambda p: tidy.to_parquet(p, index=False))
+    write_atomic(output_dir / "results.parquet", lambda p: tidy.to_parquet(p, index=False))
     tidy.to_csv(output_dir / "results.csv", index=False)
-    _write_atomic_bytes(output_dir / "pairs.parquet", lambda p: pairs.to_parquet(p, index=False))
+    write_atomic(output_dir / "pairs.parquet", lambda p: pairs.to_parquet(p, index=False))
     return GridResult(tidy, pairs, summaries, len(cells) - len(pending), len(pending), notes, output_dir)
 
 

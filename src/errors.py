@@ -31,12 +31,28 @@ class CheckpointError(UserError):
     """Missing checkpoint or one written by another model."""
 
 
+def user_error_behind(err: BaseException) -> UserError | None:
+    """``err`` if it is a UserError, else the first UserError it was raised from (Hydra wraps errors
+    raised while instantiating, OmegaConf those raised by resolvers), else None."""
+    seen: set[int] = set()
+    cause: BaseException | None = err
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, UserError):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return None
+
+
 def exit_code_of(action: Callable[[], Any]) -> int:
-    """Run a command-line action: 0 when it succeeds; a UserError prints ``error: <message>`` on
-    stderr and gives exit status 2."""
+    """Run a command-line action: 0 when it succeeds; a UserError (or an error raised from one)
+    prints ``error: <message>`` on stderr and gives exit status 2."""
     try:
         action()
-    except UserError as err:
-        print(f"error: {err}", file=sys.stderr)
+    except Exception as err:
+        user_error = user_error_behind(err)
+        if user_error is None:
+            raise
+        print(f"error: {user_error}", file=sys.stderr)
         return 2
     return 0

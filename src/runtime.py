@@ -21,10 +21,14 @@ import pandas as pd
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from src.errors import ConfigError, UserError
+from src.checkpoint_io import AtomicCheckpointIO
+from src.errors import ConfigError, user_error_behind
+from src.files import remove_stale_temporaries, write_text_atomic
+from src.validation import validate_config
 
 log = logging.getLogger(__name__)
 
@@ -33,14 +37,18 @@ ON_FAILURE_MODES = ("auto", "record", "raise")
 
 
 def exit_on_user_error(main: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
-    """Turn a UserError into one ``error: ...`` line on stderr and exit status 2."""
+    """Turn a UserError (or an error raised from one) into one ``error: ...`` line on stderr and exit
+    status 2."""
 
     @functools.wraps(main)
     def wrapper(cfg: DictConfig) -> Any:
         try:
             return main(cfg)
-        except UserError as err:
-            print(f"error: {err}", file=sys.stderr)
+        except Exception as err:
+            user_error = user_error_behind(err)
+            if user_error is None:
+                raise
+            print(f"error: {user_error}", file=sys.stderr)
             sys.exit(2)
 
     return wrapper
@@ -50,15 +58,24 @@ TRAINING_ONLY_CALLBACKS = ("checkpoint", "periodic_checkpoint", "rng_state")
 
 
 def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
-    """Trainer with the configured loggers and callbacks (checkpointing only when training)."""
+    """Trainer with the configured loggers and callbacks (checkpointing only when training).
+
+    Checkpoints are written by :class:`~src.checkpoint_io.AtomicCheckpointIO` (a temporary beside
+    the target, then a rename); temporaries left in the checkpoint folders by killed runs are
+    removed here, before training starts.
+    """
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [
         hydra.utils.instantiate(c)
         for name, c in (cfg.get("callbacks") or {}).items()
         if with_checkpoints or name not in TRAINING_ONLY_CALLBACKS
     ]
+    for callback in callbacks:
+        if isinstance(callback, ModelCheckpoint) and callback.dirpath:
+            for path in remove_stale_temporaries(Path(callback.dirpath)):
+                log.info("removed %s, a partial checkpoint left by a killed run", path)
     patch_ddp_subprocess_launcher()
-    return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks)
+    return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks, plugins=[AtomicCheckpointIO()])
 
 
 def global_rank() -> int:
@@ -67,16 +84,9 @@ def global_rank() -> int:
     return int(getattr(rank_zero_only, "rank", 0) or 0)
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Write via a temporary file and rename, so readers (and other ranks) never see half a file."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def save_resolved_config(cfg: DictConfig, output_dir: Path) -> None:
     output_dir.mkdir(parents=True, exist_ok=True)
-    _write_atomic(output_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    write_text_atomic(output_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
 
 def read_csv_logs(run_dir: Path) -> pd.DataFrame:
@@ -91,7 +101,7 @@ def read_csv_logs(run_dir: Path) -> pd.DataFrame:
 def write_metrics(metrics: dict[str, float], output_dir: Path, context: dict[str, Any]) -> pd.DataFrame:
     """metrics.json (context + metrics) and metrics.csv (one tidy row per metric)."""
     output_dir.mkdir(parents=True, exist_ok=True)
-    _write_atomic(output_dir / "metrics.json", json.dumps({**context, "metrics": metrics}, indent=2))
+    write_text_atomic(output_dir / "metrics.json", json.dumps({**context, "metrics": metrics}, indent=2))
     frame = pd.DataFrame([{**context, "metric": k, "value": v} for k, v in metrics.items()])
     frame.to_csv(output_dir / "metrics.csv", index=False)
     return frame
@@ -143,7 +153,7 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         "reason": failure_reason(err),
         "error_type": type(err).__name__,
         "message": str(err).strip(),
-        "user_error": isinstance(err, UserError),
+        "user_error": user_error_behind(err) is not None,
         "traceback": "".join(traceback.format_exception(type(err), err, err.__traceback__)),
         "time": datetime.datetime.now().isoformat(timespec="seconds"),
         "host": socket.gethostname(),
@@ -156,12 +166,13 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         record["job"] = {"name": hc.job.name, "num": hc.job.get("num"), "id": hc.job.get("id")}
     output_dir.mkdir(parents=True, exist_ok=True)
     path = output_dir / _failure_name(rank)
-    _write_atomic(path, json.dumps(record, indent=2))
+    write_text_atomic(path, json.dumps(record, indent=2))
     return path
 
 
 def record_failures(main: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
-    """Run a job; on any exception write ``failure.json`` into its run dir, then (``on_failure``)
+    """Run a job once its config passes :func:`~src.validation.validate_config`; on any exception
+    (an invalid config included) write ``failure.json`` into its run dir, then (``on_failure``)
     re-raise it (``raise``) or log it and return None so the sweep goes on (``record``).
 
     Wrap it inside :func:`exit_on_user_error` so a re-raised UserError stays one line. A job that
@@ -175,6 +186,7 @@ def record_failures(main: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
         _ACTIVE_ON_FAILURE = mode
         output_dir = _job_output_dir(cfg)
         try:
+            validate_config(cfg)
             with distributed_job_scope():
                 result = main(cfg)
         except Exception as err:

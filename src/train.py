@@ -8,20 +8,27 @@
 
 A failing job writes ``failure.json`` into its run dir; ``on_failure=auto`` (default) then goes on
 with the sweep in a multirun and re-raises in a single run (``record`` / ``raise`` to force).
+
+Refused in one ``error:`` line before training: a checkpoint to resume that is missing, unreadable,
+of another network or weights-only; a training set smaller than one batch; a value the network
+rejects. After training: a run that made no optimisation step (nothing to test).
 """
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from pathlib import Path
 
 import hydra
 import lightning as L
+from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
+from src.checkpoint_io import check_checkpoint
 from src.config import register_resolvers
-from src.errors import CheckpointError
+from src.errors import ConfigError
 from src.runtime import (
     build_trainer,
     exit_on_user_error,
@@ -36,20 +43,66 @@ register_resolvers()
 warnings.filterwarnings("ignore", message="You're resuming from a checkpoint that ended before the epoch ended")
 
 
+def build_module(model_cfg: DictConfig) -> L.LightningModule:
+    """The configured RegistrationModule; a value its network's constructor rejects (ValueError,
+    TypeError, e.g. an unknown ``mask_mode``) becomes one ConfigError line."""
+    try:
+        return hydra.utils.instantiate(model_cfg)
+    except InstantiationException as err:
+        cause: BaseException = err
+        while cause.__cause__ is not None:  # Hydra wraps once per nested instantiation
+            cause = cause.__cause__
+        if isinstance(cause, (ValueError, TypeError)):
+            raise ConfigError(f"model: {model_cfg.network._target_} rejects its config: {cause}") from err
+        raise
+
+
+def require_one_batch(datamodule: L.LightningDataModule, trainer: L.Trainer) -> None:
+    """Refuse a training set smaller than one batch per process: the loader drops incomplete
+    batches (``drop_last``), so such a run would train nothing."""
+    if datamodule.batch_size is None:
+        raise ConfigError("data.batch_size is null (a test-only data config): set data.batch_size=N to train")
+    datamodule.setup("fit")
+    train_set = datamodule.datasets.get("train")
+    if train_set is None:
+        return  # no train split: the datamodule names it when the loader is asked for
+    per_process = math.ceil(len(train_set) / trainer.world_size)
+    if per_process >= datamodule.batch_size:
+        return
+    processes = f" per process ({trainer.world_size} processes)" if trainer.world_size > 1 else ""
+    fix = f"set data.batch_size={per_process} or less, or " if per_process else ""
+    raise ConfigError(
+        f"the training set has {len(train_set)} shapes, fewer than one batch of data.batch_size={datamodule.batch_size}"
+        f"{processes}; incomplete batches are dropped, so nothing would be trained: {fix}train on more shapes "
+        "(data.splits.train)"
+    )
+
+
+def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
+    """Refuse to test a run that ended without a single optimisation step."""
+    if trainer.global_step > 0:
+        return
+    limits = ", ".join(f"trainer.{k}={cfg.trainer.get(k)}" for k in ("max_steps", "max_epochs", "limit_train_batches"))
+    raise ConfigError(f"training ended after 0 optimisation steps ({limits}): nothing was trained, so nothing is "
+                      "tested; allow at least one training step")
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
     output_dir = Path(cfg.output_dir)
+    if cfg.ckpt_path:
+        check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True)
     if global_rank() == 0:
         save_resolved_config(cfg, output_dir)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
-    module = hydra.utils.instantiate(cfg.model)
+    module = build_module(cfg.model)
     trainer = build_trainer(cfg)
-    if cfg.ckpt_path and not Path(cfg.ckpt_path).is_file():
-        raise CheckpointError(f"cannot resume: checkpoint {cfg.ckpt_path} does not exist")
+    require_one_batch(datamodule, trainer)
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     fit_seconds = time.perf_counter() - start
+    require_training_steps(trainer, cfg)
     if not cfg.test_after_fit:
         return {}
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from baselines import get_registrator, run_pairs, transform_problem
+from baselines.base import POINT_BUDGET
 from baselines.classical import goicp as goicp_module
+from baselines.classical.fgr import FGR
 from baselines.classical.symmetric_icp import symmetric_step
 from baselines.testing import apply_transform, euler_transform, make_pair, rotation_error_deg, translation_error
-from src.errors import ConfigError
+from src.errors import ConfigError, PointCloudError
 
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~10° about a tilted axis
 LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total
@@ -125,3 +127,35 @@ def test_goicp_normalisation_round_trip():
     assert max(np.abs(src_n).max(), np.abs(ref_n).max()) == pytest.approx(1.0)
     np.testing.assert_allclose(src_n * scale + c_src, src)
     np.testing.assert_allclose(ref_n * scale + c_ref, ref)
+
+
+@pytest.mark.parametrize("scale, offset", [(1e9, 0.0), (1e-6, 0.0), (1.0, 1e9)])
+@pytest.mark.parametrize("method, truth, limit", [("icp", SMALL, 0.1), ("symmetric_icp", SMALL, 0.1), ("fgr", LARGE, 2.0)])
+def test_methods_work_on_unnormalised_input(method, truth, limit, scale, offset):
+    """Far from the unit-sphere frame their options assume (x1e9 gave ICP the identity, FGR a wrong
+    pose), every method registers in the working frame and maps the estimate back."""
+    src, ref = make_pair(truth, 600, seed=1)
+    shift = np.array([offset, -offset, offset])
+    estimate = get_registrator(method).register(src * scale + shift, ref * scale + shift)
+    rot = estimate[:3, :3]
+    in_object_units = (estimate[:3, 3] - shift + rot @ shift) / scale  # x' = scale x + shift undone
+    assert rotation_error_deg(estimate, truth) < limit
+    assert np.linalg.norm(in_object_units - truth[:3, 3]) < 0.02
+
+
+@pytest.mark.parametrize("method", ["icp", "fgr", "symmetric_icp", "goicp"])
+def test_degenerate_clouds_are_refused_by_every_method(method):
+    if method == "goicp" and not HAS_GOICP:
+        pytest.skip("optional Go-ICP extension not installed")
+    with pytest.raises(PointCloudError, match="src: degenerate cloud, its 3 points are all the same point"):
+        get_registrator(method).register(np.ones((3, 3)), np.ones((3, 3)))  # FGR: Open3D RuntimeError before
+
+
+def test_fgr_registers_large_clouds_within_the_point_budget(monkeypatch):
+    """FGR on 200k points had not finished after 300 s; a call now sees at most POINT_BUDGET points."""
+    seen = []
+    original = FGR._register
+    monkeypatch.setattr(FGR, "_register", lambda self, src, ref: seen.append((len(src), len(ref))) or original(self, src, ref))
+    src, ref = make_pair(LARGE, 3 * POINT_BUDGET, seed=0)
+    rot, trans = _errors(get_registrator("fgr").register(src, ref), LARGE)
+    assert max(seen[0]) <= POINT_BUDGET and rot < 2.0 and trans < 0.02

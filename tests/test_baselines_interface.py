@@ -15,7 +15,14 @@ from baselines import (
     register_registrator,
     transform_problem,
 )
-from baselines.base import _REGISTRY, project_to_rotation
+from baselines.base import (
+    _REGISTRY,
+    POINT_BUDGET,
+    budget_voxel_size,
+    project_to_rotation,
+    voxel_down_sample,
+    working_frame,
+)
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface, make_pair
 from src.errors import ConfigError, PointCloudError
 
@@ -84,6 +91,9 @@ def test_register_registrator_supports_lazy_adapters():
         ([[0, 0, 0], [1, 0, 0], [0, float("nan"), 0]], "NaN or infinite"),
         ([[0, 0, 0], [1, 0, 0], [0, float("inf"), 0]], "NaN or infinite"),
         ([["a", "b", "c"]] * 3, "cannot be read"),
+        (np.ones((3, 3)), "degenerate cloud, its 3 points are all the same point"),
+        ([[0, 0, 0], [1, 1, 1]] * 50, r"degenerate cloud, its 100 points are all on one line \(2 distinct\)"),
+        (np.outer(np.linspace(-1, 1, 40), [1, 2, 3]) + 5, r"all on one line \(40 distinct\)"),
     ],
 )
 def test_bad_clouds_raise_one_line_point_cloud_errors(points, match):
@@ -98,7 +108,7 @@ def test_bad_clouds_raise_one_line_point_cloud_errors(points, match):
 
 
 def test_check_cloud_returns_float64_contiguous():
-    out = check_cloud(np.arange(12, dtype=np.float32).reshape(4, 3)[::-1])
+    out = check_cloud((np.arange(12, dtype=np.float32) ** 2).reshape(4, 3)[::-1])
     assert out.dtype == np.float64 and out.flags.c_contiguous
 
 
@@ -140,3 +150,58 @@ def test_project_to_rotation_is_proper():
     rot = project_to_rotation(rng.normal(size=(3, 3)))
     np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
     assert np.linalg.det(rot) == pytest.approx(1.0)
+
+
+class SizeRecorder(ToyRegistrator):
+    """The toy method, remembering the clouds it was handed."""
+
+    def _register(self, src, ref):
+        self.seen = (src, ref)
+        return super()._register(src, ref)
+
+
+def test_a_plane_is_not_degenerate():
+    plane = np.c_[np.random.default_rng(0).random((50, 2)), np.zeros(50)]
+    assert check_cloud(plane).shape == (50, 3)
+
+
+def test_pairs_of_the_protocols_are_registered_as_given():
+    src, ref = make_pair(euler_transform((45, 45, 45), (0.5, -0.5, 0.5)), 717, seed=0)
+    assert working_frame(src, ref) is None and working_frame(0.2 * src, 0.2 * ref) is None
+    reg = SizeRecorder()
+    reg.register(src, ref)
+    assert np.array_equal(reg.seen[0], src) and np.array_equal(reg.seen[1], ref)
+
+
+@pytest.mark.parametrize("scale, offset", [(1e9, 0.0), (1e-6, 0.0), (1.0, 1e9), (1e4, -3e7)])
+def test_pairs_outside_the_working_frame_are_normalised_and_mapped_back(scale, offset):
+    truth = euler_transform((0, 0, 0), (0.3, -0.2, 0.1))
+    src, ref = (c * scale + offset for c in make_pair(truth, 300, seed=1))
+    reg = SizeRecorder()
+    estimate = reg.register(src, ref)
+    seen_src, seen_ref = reg.seen
+    radius = max(np.linalg.norm(c - c.mean(axis=0), axis=1).max() for c in (seen_src, seen_ref))
+    assert 0.7 <= radius < 1.42 and max(np.abs(seen_src).max(), np.abs(seen_ref).max()) < 2.0
+    np.testing.assert_allclose(estimate[:3, :3], np.eye(3))
+    np.testing.assert_allclose(estimate[:3, 3], scale * truth[:3, 3], rtol=0, atol=1e-9 * scale + 1e-14 * abs(offset))
+
+
+def test_large_clouds_are_voxel_down_sampled_to_the_point_budget():
+    truth = euler_transform((0, 0, 0), (0.3, -0.2, 0.1))
+    src, ref = make_pair(truth, 3 * POINT_BUDGET, seed=2)
+    reg = SizeRecorder()
+    estimate = reg.register(src, ref[: POINT_BUDGET // 2])
+    assert max(len(c) for c in reg.seen) <= POINT_BUDGET and min(len(c) for c in reg.seen) > 0.4 * POINT_BUDGET // 2
+    np.testing.assert_allclose(estimate[:3, 3], [0.3, -0.2, 0.1], atol=0.05)  # centroids of the down-sampled clouds
+    reg.point_budget = None  # per instance: off
+    reg.register(src, ref)
+    assert len(reg.seen[0]) == 3 * POINT_BUDGET
+
+
+def test_voxel_down_sample_averages_each_occupied_voxel():
+    points = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.2, 0.2], [1.7, 0.2, 0.4]])
+    out = voxel_down_sample(points, 1.0)
+    np.testing.assert_allclose(sorted(map(tuple, out)), [(0.2, 0.2, 0.2), (1.6, 0.2, 0.3)])
+    cloud = l_shape_surface(20000)
+    voxel = budget_voxel_size([cloud], 1000)
+    assert 700 < len(voxel_down_sample(cloud, voxel)) <= 1000

@@ -143,6 +143,22 @@ def test_rerun_reuses_finished_cells(tmp_path, cache_root, monkeypatch):
     assert json.loads(json_file.read_text())["complete"] is True
 
 
+def test_damaged_cell_file_is_recomputed_with_a_warning(tmp_path, cache_root, capsys):
+    cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]")
+    first = grid.run_grid(cfg)
+    parquet = next((tmp_path / "out" / "cells").glob("*.parquet"))
+    parquet.write_bytes(parquet.read_bytes()[: parquet.stat().st_size // 2])  # e.g. a disk filled up mid-copy
+    capsys.readouterr()
+    second = grid.run_grid(cfg)
+    assert (second.computed, second.reused) == (1, 0)
+    warning = capsys.readouterr().err.strip().splitlines()
+    assert len(warning) == 1 and warning[0].startswith("warning: cell toy/unseen_shapes/ts/rpmnet: ")
+    assert parquet.name in warning[0] and "recomputing it" in warning[0]
+    timing = ["seconds", "seconds_per_pair"]
+    pd.testing.assert_frame_equal(first.tidy.drop(columns=timing), second.tidy.drop(columns=timing))
+    assert len(pd.read_parquet(parquet)) == 3
+
+
 def test_exclude_and_per_method_limits(tmp_path, cache_root):
     cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.exclude=[toy/*/*/prnet]", "+benchmark.max_pairs_by_method.icp=2")
     result = grid.run_grid(cfg)
@@ -161,9 +177,18 @@ def test_clear_errors(tmp_path, cache_root):
         grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[omnet]", f"method_options.omnet.checkpoint={tmp_path}/x.ckpt"))
     with pytest.raises(DatasetError, match="src.data.prepare modelnet40"):
         grid.run_grid(grid_cfg(tmp_path, cache_root, "data=modelnet40", tiny=False))
-    with pytest.raises(PointCloudError, match="pair 0: points_src: needs at least 3 points, got 2"):
+    with pytest.raises(ConfigError, match=r"data.pair.prnet_num_keep=2 is invalid: it must be an integer >= 3"):
         grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.partials=[prnet]", data_overrides=("data.pair.prnet_num_keep=2",)))
+    with pytest.raises(ConfigError, match=r"data.pair.noise_sigma=-1 is invalid: it must be a number >= 0"):
+        grid.run_grid(grid_cfg(tmp_path, cache_root, data_overrides=("data.pair.noise_sigma=-1",)))
     assert not (tmp_path / "cells").exists()  # nothing ran
+
+
+def test_degenerate_test_pair_is_named():
+    sample = {"points_src": torch.ones(5, 3), "points_ref": torch.rand(5, 3), "transform_gt": torch.eye(4)}
+    test_set = grid.TestSet("unseen_shapes", "ts", "prnet", None, [sample], {})
+    with pytest.raises(PointCloudError, match="unseen_shapes/ts/prnet, pair 0: points_src: degenerate cloud"):
+        test_set.pairs(1)
 
 
 def test_command_line_error_is_one_line(tmp_path, monkeypatch, capsys):

@@ -281,3 +281,26 @@ def test_joblib_launcher_multirun_with_a_failing_job(tmp_path):
     assert proc.wait(timeout=600) == 3, log.read_text()[-3000:]
     status = collect(tmp_path / "mr").jobs.set_index("job")["status"].to_dict()
     assert status == {"0": "failed", "1": "ok"} and not math.isnan(collect(tmp_path / "mr").tidy["value"].sum())
+
+
+def test_failed_jobs_keep_their_overrides(tmp_path):
+    """A job that failed before writing config_resolved.yaml (e.g. an invalid value) is labelled by its
+    overrides: .hydra/overrides.yaml, or failure.json's when Hydra wrote no .hydra folder."""
+    def job(num: str, overrides: list[str], hydra_dir: bool, ok: bool) -> None:
+        folder = tmp_path / num
+        (folder / ".hydra").mkdir(parents=True)
+        if hydra_dir:
+            (folder / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+        if ok:
+            (folder / "config_resolved.yaml").write_text("partial: prnet\nsampling: ts\ndata: {pair: {noise_sigma: 0.0}}\n")
+            (folder / "metrics.json").write_text(json.dumps({"metrics": {"Error(R)": 1.0}}))
+        else:
+            (folder / "failure.json").write_text(json.dumps({"reason": "ConfigError: invalid", "overrides": overrides}))
+
+    job("0", ["partial=prnet", "data.pair.noise_sigma=0.0"], hydra_dir=True, ok=True)
+    job("1", ["partial=yy", "data.pair.noise_sigma=0.0"], hydra_dir=True, ok=False)
+    job("2", ["partial=rpmnet", "data.pair.noise_sigma=0.02"], hydra_dir=False, ok=False)
+    jobs = collect(tmp_path).jobs.set_index("job")
+    assert jobs["status"].to_dict() == {"0": "ok", "1": "failed", "2": "failed"}
+    assert jobs["partial"].to_dict() == {"0": "prnet", "1": "yy", "2": "rpmnet"}
+    assert jobs["noise_sigma"].to_dict() == {"0": 0.0, "1": 0.0, "2": 0.02}

@@ -1,0 +1,73 @@
+"""Reading and writing ``src.train`` checkpoints safely.
+
+* :func:`read_checkpoint` / :func:`check_checkpoint` — the one check of a checkpoint given by the
+  user (``src.train ckpt_path=`` to resume, ``src.eval ckpt_path=`` to evaluate, a learned method's
+  ``checkpoint=``): it exists, is a readable PyTorch file, was written by ``src.train`` and holds
+  the configured network (and, to resume, the training state). Each problem is one
+  :class:`~src.errors.CheckpointError` line.
+* :class:`AtomicCheckpointIO` — Lightning's checkpoint writer, but staging each file beside its
+  target (:mod:`src.files`): Lightning's own writer stages it in the system temporary folder,
+  where every kill during a save left a partial file behind.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+
+from src.errors import CheckpointError
+from src.files import write_atomic
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """A checkpoint written by ``src.train`` (memory-mapped where the format allows); CheckpointError
+    if the file is missing, unreadable (truncated, another kind of file) or holds no network config."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        try:
+            checkpoint = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+        except RuntimeError:  # old (non-zip) serialisation cannot be memory-mapped
+            checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointError(
+            f"{path} is not a readable PyTorch checkpoint ({type(err).__name__}: truncated or another kind of file); "
+            "pass a .ckpt written by src.train"
+        ) from err
+    hparams = checkpoint.get("hyper_parameters") if isinstance(checkpoint, dict) else None
+    if not isinstance(hparams, dict) or not (hparams.get("network") or {}).get("_target_"):
+        raise CheckpointError(f"{path} was not written by src.train (no network config inside)")
+    return checkpoint
+
+
+def check_checkpoint(path: str | Path, expected_target: str, resume: bool = False) -> dict[str, Any]:
+    """The checkpoint's hyper-parameters, after :func:`read_checkpoint` and checking it holds an
+    ``expected_target`` network (and, with ``resume``, the optimiser and loop states resuming needs)."""
+    checkpoint = read_checkpoint(path)
+    hparams = checkpoint["hyper_parameters"]
+    found = hparams["network"]["_target_"]
+    if found != expected_target:
+        raise CheckpointError(
+            f"{path} holds a {found} network but the config asks for {expected_target}: pass model=<its model>"
+        )
+    if resume and "optimizer_states" not in checkpoint:
+        raise CheckpointError(
+            f"{path} holds weights only, no training state to resume: resume from a run's checkpoints/last.ckpt, "
+            "or evaluate it with src.eval"
+        )
+    return hparams
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """``torch.save`` to ``.<name>.<pid>.tmp`` beside the target, flushed, then renamed over it."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__} takes no storage_options")
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, lambda tmp: torch.save(checkpoint, tmp))

@@ -1,0 +1,192 @@
+"""One schema check of a composed config: types, ranges and choices of the data and model fields.
+
+:func:`validate_config` runs before a job touches anything (``src.train`` and ``src.eval`` through
+:func:`src.runtime.record_failures`, ``benchmarks.grid`` for each experiment it composes), so a
+value such as ``data.pair.noise_sigma=-1`` or ``data.batch_size=abc`` stops with one
+:class:`~src.errors.ConfigError` line naming the key, the rule and the value, instead of running
+with a silently different setting or failing deep inside with a traceback.
+
+:data:`RULES` is the one table: dotted key -> :class:`Rule`. A rule applies when its key is in the
+config (the network keys only for the networks that have them); keys without a rule (new
+switches, per-model ``recipe`` blocks) and values computed at instantiation (a node with a
+``_target_``) are not this module's business and pass.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from baselines.base import MIN_POINTS
+from src.data.datamodule import NORMALS
+from src.data.transforms import PARTIAL_MANNERS, SAMPLINGS
+from src.errors import ConfigError, user_error_behind
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What a value must be: an ``int``/``float``/``bool`` within optional bounds (``low_open`` /
+    ``high_open``: strict), one of ``choices``, or a list of such values (``each``)."""
+
+    kind: type = float
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple[str, ...] = ()
+    nullable: bool = False
+    each: bool = False
+
+    def describe(self) -> str:
+        if self.choices:
+            text = f"one of {', '.join(self.choices)}"
+        elif self.kind is bool:
+            text = "true or false"
+        else:
+            text = "an integer" if self.kind is int else "a number"
+            if self.low is not None and self.high is not None:
+                text += f" in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}"
+            elif self.low is not None:
+                text += f" {'>' if self.low_open else '>='} {self.low:g}"
+        if self.each:
+            text = f"a list of {text.replace('an integer', 'integers').replace('a number', 'numbers')}"
+        return text + (" (or null)" if self.nullable else "")
+
+    def accepts(self, value: Any) -> bool:
+        if value is None:
+            return self.nullable
+        if self.each:
+            return isinstance(value, (list, tuple)) and all(self._accepts_one(v) for v in value)
+        return self._accepts_one(value)
+
+    def _accepts_one(self, value: Any) -> bool:
+        if self.choices:
+            return isinstance(value, str) and value in self.choices
+        if self.kind is bool or isinstance(value, bool):
+            return self.kind is bool and isinstance(value, bool)
+        if not isinstance(value, (int, float)) or (self.kind is int and not isinstance(value, int)):
+            return False
+        if not math.isfinite(value):
+            return False
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return self.high is None or (value < self.high if self.high_open else value <= self.high)
+
+
+def integer(low: int | None = None, nullable: bool = False) -> Rule:
+    return Rule(int, low, nullable=nullable)
+
+
+def number(low: float | None = None, high: float | None = None, low_open: bool = False, high_open: bool = False,
+           nullable: bool = False) -> Rule:
+    return Rule(float, low, high, low_open, high_open, nullable=nullable)
+
+
+POSITIVE = number(0.0, low_open=True)
+NON_NEGATIVE = number(0.0)
+FRACTION = number(0.0, 1.0, low_open=True)  # (0, 1]
+FLAG = Rule(bool)
+
+_NETWORK_COUNTS = ("num_iters", "num_train_iters", "num_sk_iter", "max_iter", "n_blocks", "n_heads", "k", "emb_dims",
+                   "ff_dims", "d_model", "n_clusters", "dim_k", "feat_dim", "num_neighbors", "normals_k",
+                   "num_keypoints", "topk", "decoder_points", "keep_divisor")
+_NETWORK_SCALES = ("width", "overlap_dist", "radius", "match_dist", "delta", "xtol", "temp_factor")
+_NETWORK_WEIGHTS = ("rot_loss_weight", "trans_loss_weight", "cycle_weight", "feature_alignment_weight", "chamfer_weight",
+                    "transform_weight", "feature_loss_weight", "inlier_weight")
+_NETWORK_FLAGS = ("share_weights", "mask_module", "mask_loss", "fusion", "connection", "cycle", "pointer", "learn_delta",
+                  "deterministic_eval", "use_rri", "exact_procrustes", "slack")
+
+#: The one table of rules (checked in this order: the choices that other values interpolate come first).
+RULES: dict[str, Rule] = {
+    "sampling": Rule(str, choices=SAMPLINGS),
+    "partial": Rule(str, choices=PARTIAL_MANNERS),
+    "seed": integer(),
+    "model_scale": POSITIVE,
+    "test_after_fit": FLAG,
+    # data (conf/data/base.yaml)
+    "data.pair.sampling": Rule(str, choices=SAMPLINGS),
+    "data.pair.partial": Rule(str, choices=PARTIAL_MANNERS),
+    "data.pair.num_points": integer(MIN_POINTS),
+    "data.pair.rot_mag": number(0.0, 180.0),
+    "data.pair.trans_mag": NON_NEGATIVE,
+    "data.pair.noise_sigma": NON_NEGATIVE,
+    "data.pair.noise_clip": POSITIVE,
+    "data.pair.prnet_num_keep": integer(MIN_POINTS),
+    "data.pair.rpmnet_p_keep": FRACTION,
+    "data.pair.rpmnet_num_points": integer(MIN_POINTS),
+    "data.pair.overlap_ratio": number(0.0, 1.0, low_open=True, nullable=True),
+    "data.normals": Rule(str, choices=NORMALS),
+    "data.remove_axisymmetric": FLAG,
+    "data.batch_size": integer(1, nullable=True),  # null: a test-only data config (src.train refuses it)
+    "data.eval_batch_size": integer(1),
+    "data.num_workers": integer(0),
+    "data.pin_memory": FLAG,
+    "data.persistent_workers": FLAG,
+    "data.seed": integer(),
+    "data.build.num_train_per_category": integer(1),
+    "data.build.num_test_per_category": integer(1),
+    "data.build.num_samplings": integer(1),
+    "data.build.num_points": integer(MIN_POINTS),
+    "data.build.seed": integer(),
+    # model (conf/model/*.yaml, conf/recipe/*.yaml): the RegistrationModule, then network fields by name
+    "model.lr": POSITIVE,
+    "model.weight_decay": NON_NEGATIVE,
+    "model.lr_milestones": Rule(int, 0, each=True),
+    "model.lr_gamma": POSITIVE,
+    "model.scheduler.milestones": Rule(int, 0, each=True),
+    "model.scheduler.gamma": POSITIVE,
+    "model.scheduler.factor": number(0.0, 1.0, low_open=True, high_open=True),
+    "model.scheduler.patience": integer(0),
+    "model.scheduler.min_lr": NON_NEGATIVE,
+    "model.scheduler.warmup_steps": integer(0),
+    "model.scheduler.pct_start": number(0.0, 1.0, low_open=True, high_open=True),
+    "model.scheduler.div_factor": POSITIVE,
+    "model.scheduler.final_div_factor": POSITIVE,
+    "model.compile": FLAG,
+    **{f"model.network.{name}": integer(1) for name in _NETWORK_COUNTS},
+    "model.network.mask_start_iter": integer(0),
+    **{f"model.network.{name}": POSITIVE for name in _NETWORK_SCALES},
+    **{f"model.network.{name}": NON_NEGATIVE for name in _NETWORK_WEIGHTS},
+    **{f"model.network.{name}": FLAG for name in _NETWORK_FLAGS},
+    "model.network.mask_class_weights": Rule(float, 0.0, each=True),
+    "model.network.dropout": number(0.0, 1.0, high_open=True),
+    "model.network.discount": FRACTION,
+}
+
+_ABSENT = object()
+
+
+def _value(cfg: DictConfig, key: str) -> Any:
+    """The resolved value at ``key`` (``_ABSENT`` if there is none); a value whose interpolation fails
+    raises the UserError behind it, or a ConfigError naming the key."""
+    try:
+        value = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=False)
+    except Exception as err:  # noqa: BLE001 - OmegaConf wraps resolver errors in its own types
+        user_error = user_error_behind(err)
+        if user_error is not None:
+            raise user_error from None
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise ConfigError(f"{key} cannot be resolved: {first}") from None
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Raise ConfigError for the first value of ``cfg`` that breaks its rule in :data:`RULES`."""
+    for key, rule in RULES.items():
+        value = _value(cfg, key)
+        if value is _ABSENT or (isinstance(value, dict) and "_target_" in value):
+            continue
+        if not rule.accepts(value):
+            raise ConfigError(f"{key}={_show(value)} is invalid: it must be {rule.describe()}")
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, Sequence):
+        return "[" + ", ".join(_show(v) for v in value) + "]"
+    return str(value).lower() if isinstance(value, bool) or value is None else str(value)

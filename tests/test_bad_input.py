@@ -1,0 +1,199 @@
+"""Bad input never gives a wrong result (issue 16): config values checked at composition, training
+that would train nothing, checkpoints to resume from, and checkpoint files of killed saves."""
+
+from __future__ import annotations
+
+import glob
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from test_entrypoints import TINY
+
+import src.eval
+import src.train
+from src.config import register_resolvers
+from src.errors import CheckpointError, ConfigError
+from src.files import remove_stale_temporaries, write_atomic
+from src.runtime import build_trainer
+from src.train import train
+from src.validation import validate_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
+SHIPPED = ROOT / "checkpoints" / "omnet_unseen_categories_synthetic_ts_prnet.ckpt"
+register_resolvers()
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> str:
+    return f"data.cache_root={tmp_path_factory.mktemp('cache')}"
+
+
+def _tiny(cache: str, tmp_path: Path, *overrides: str):
+    return _compose(*TINY, cache, f"output_dir={tmp_path / 'run'}", "+exp=unseen_shapes", *overrides)
+
+
+# --- config values ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("override, message", [
+    ("data.pair.noise_sigma=-1", "data.pair.noise_sigma=-1 is invalid: it must be a number >= 0"),  # ran noise-free
+    ("data.pair.noise_sigma=nan", "data.pair.noise_sigma=nan is invalid: it must be a number >= 0"),
+    ("data.pair.noise_clip=0", "data.pair.noise_clip=0 is invalid: it must be a number > 0"),
+    ("data.pair.rot_mag=-10", "data.pair.rot_mag=-10 is invalid: it must be a number in [0, 180]"),
+    ("data.pair.trans_mag=-0.5", "data.pair.trans_mag=-0.5 is invalid: it must be a number >= 0"),
+    ("data.pair.overlap_ratio=1.5", "data.pair.overlap_ratio=1.5 is invalid: it must be a number in (0, 1] (or null)"),
+    ("data.pair.rpmnet_p_keep=0", "data.pair.rpmnet_p_keep=0 is invalid: it must be a number in (0, 1]"),
+    ("data.pair.prnet_num_keep=0", "data.pair.prnet_num_keep=0 is invalid: it must be an integer >= 3"),
+    ("data.batch_size=abc", "data.batch_size='abc' is invalid: it must be an integer >= 1 (or null)"),  # 74-line traceback
+    ("data.batch_size=8.5", "data.batch_size=8.5 is invalid: it must be an integer >= 1 (or null)"),
+    ("data.num_workers=-1", "data.num_workers=-1 is invalid: it must be an integer >= 0"),
+    ("data.pin_memory=yes", "data.pin_memory='yes' is invalid: it must be true or false"),
+    ("partial=yy", "partial='yy' is invalid: it must be one of prnet, rpmnet, none"),  # a 20-line traceback
+    ("sampling=xs", "sampling='xs' is invalid: it must be one of os, ts"),
+    ("model_scale=0", "model_scale=0 is invalid: it must be a number > 0"),
+    ("model.lr=-1e-3", "model.lr=-0.001 is invalid: it must be a number > 0"),
+    ("model.network.num_iters=0", "model.network.num_iters=0 is invalid: it must be an integer >= 1"),
+    ("model.network.trans_loss_weight=-4", "model.network.trans_loss_weight=-4 is invalid: it must be a number >= 0"),
+    ("model.network.share_weights=yes", "model.network.share_weights='yes' is invalid: it must be true or false"),
+    ("model.network.mask_class_weights=[0.7,-0.3]",
+     "model.network.mask_class_weights=[0.7, -0.3] is invalid: it must be a list of numbers >= 0"),
+])
+def test_invalid_values_are_refused_at_composition(override, message):
+    with pytest.raises(ConfigError) as info:
+        validate_config(_compose(override))
+    assert str(info.value) == message
+
+
+def test_every_shipped_config_is_valid_and_unknown_keys_pass():
+    models = sorted(Path(p).stem for p in glob.glob(f"{CONF}/model/*.yaml"))
+    experiments = sorted(Path(p).stem for p in glob.glob(f"{CONF}/exp/*.yaml"))
+    for overrides in [[f"model={m}", "+exp=scan_pairs"] for m in models] + [[f"+exp={e}"] for e in experiments]:
+        validate_config(_compose(*overrides))
+    validate_config(_compose("+data.a_new_switch=abc", "+model.recipe_note=-1", "partial=rpmnet", "sampling=os"))
+
+
+@pytest.mark.parametrize("entry, override, message", [
+    (src.train, "data.batch_size=abc", "error: data.batch_size='abc' is invalid: it must be an integer >= 1"),
+    (src.eval, "partial=yy", "error: partial='yy' is invalid: it must be one of prnet, rpmnet, none"),
+    # a UserError raised inside a constructor Hydra instantiates (and wraps): still one line
+    (src.train, "+data.splits.extra={split: train}", "error: data.splits has unknown stages ['extra']"),
+])
+def test_entry_points_stop_with_one_line(entry, override, message, tmp_path, capsys, cache):
+    """``main`` below Hydra's decorator: exit_on_user_error(record_failures(...)), as the command runs it."""
+    cfg = _compose(*TINY, cache, override, f"output_dir={tmp_path}")
+    with pytest.raises(SystemExit) as exit_info:
+        entry.main.__wrapped__(cfg)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(message)
+    assert (tmp_path / "failure.json").is_file()
+
+
+def test_a_network_rejecting_its_config_is_one_line(tmp_path, cache):
+    with pytest.raises(ConfigError, match=r"^model: src.models.omnet.OMNet rejects its config: mask_mode must be one of"):
+        train(_tiny(cache, tmp_path, "model.network.mask_mode=foo"))
+
+
+# --- training that would train nothing --------------------------------------------------------------
+
+
+def test_training_set_smaller_than_one_batch_is_refused_before_training(tmp_path, cache):
+    with pytest.raises(ConfigError) as info:  # was: global_step 0, no checkpoint, test metrics, exit 0
+        train(_tiny(cache, tmp_path, "data.batch_size=64"))
+    assert str(info.value).startswith("the training set has 14 shapes, fewer than one batch of data.batch_size=64; ")
+    assert "set data.batch_size=14 or less" in str(info.value)
+    assert not (tmp_path / "run" / "metrics.json").exists() and not (tmp_path / "run" / "checkpoints").exists()
+    with pytest.raises(ConfigError, match=r"^data.batch_size is null \(a test-only data config\): set data.batch_size=N"):
+        train(_tiny(cache, tmp_path, "data.batch_size=null"))
+
+
+def test_a_run_without_optimisation_steps_is_not_tested(tmp_path, cache):
+    with pytest.raises(ConfigError, match=r"training ended after 0 optimisation steps \(trainer.max_steps=0, "):
+        train(_tiny(cache, tmp_path, "trainer.max_steps=0"))
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+# --- checkpoints to resume from ---------------------------------------------------------------------
+
+
+def _foreign(tmp_path: Path) -> Path:
+    path = tmp_path / "foreign.ckpt"
+    torch.save(torch.nn.Linear(50, 100).state_dict(), path)  # a state-dict dump of another model
+    return path
+
+
+def _truncated(tmp_path: Path) -> Path:
+    path = tmp_path / "truncated.ckpt"
+    path.write_bytes(SHIPPED.read_bytes()[: SHIPPED.stat().st_size // 2])
+    return path
+
+
+@pytest.mark.parametrize("make, overrides, message", [
+    (_foreign, (), "was not written by src.train (no network config inside)"),
+    (_truncated, (), "is not a readable PyTorch checkpoint (RuntimeError: truncated or another kind of file)"),
+    (lambda tmp: SHIPPED, ("model_scale=0.25",), "holds weights only, no training state to resume"),
+    (lambda tmp: SHIPPED, ("model=dcp",), "holds a src.models.omnet.OMNet network but the config asks for"),
+])
+def test_resuming_from_a_wrong_checkpoint_is_one_line(make, overrides, message, tmp_path, cache):
+    path = make(tmp_path)
+    with pytest.raises(CheckpointError) as info:  # were 21 KB / 51-line tracebacks
+        train(_tiny(cache, tmp_path, f"ckpt_path={path}", *overrides))
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+# --- checkpoint files of killed saves ----------------------------------------------------------------
+
+_KILLED_SAVE = """
+import os, shutil, signal, sys
+import torch
+from hydra import compose, initialize_config_dir
+from src.config import register_resolvers
+from src.runtime import build_trainer
+register_resolvers()
+with initialize_config_dir(config_dir=sys.argv[1], version_base="1.3"):
+    cfg = compose("config", overrides=["trainer.accelerator=cpu", "output_dir=" + sys.argv[2]])
+trainer = build_trainer(cfg)
+def killed(*args, **kwargs):
+    os.kill(os.getpid(), signal.SIGKILL)
+os.replace = shutil.move = killed  # kill -9 once the bytes are written, before the rename
+trainer.strategy.checkpoint_io.save_checkpoint({"weights": torch.zeros(500_000)}, sys.argv[2] + "/checkpoints/last.ckpt")
+"""
+
+
+def test_a_save_killed_midway_leaves_nothing_behind_after_the_next_start(tmp_path):
+    system_tmp, run = tmp_path / "system_tmp", tmp_path / "run"
+    system_tmp.mkdir()
+    env = {**os.environ, "TMPDIR": str(system_tmp), "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([sys.executable, "-c", _KILLED_SAVE, CONF, str(run)], cwd=ROOT, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == -signal.SIGKILL, result.stderr[-2000:]
+    assert list(system_tmp.iterdir()) == []  # Lightning's writer staged a 2 MB file in the system temp folder
+    left = list((run / "checkpoints").iterdir())
+    assert len(left) == 1 and left[0].name.startswith(".last.ckpt.") and left[0].name.endswith(".tmp")
+    build_trainer(_compose("trainer.accelerator=cpu", f"output_dir={run}"))  # the next run starts
+    assert list((run / "checkpoints").iterdir()) == []
+
+
+def test_write_atomic_removes_its_temporary_on_failure_and_live_temporaries_stay(tmp_path):
+    def failing(path: Path) -> None:
+        path.write_text("half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError):
+        write_atomic(tmp_path / "metrics.json", failing)
+    assert list(tmp_path.iterdir()) == []
+    mine = tmp_path / f".last.ckpt.{os.getpid()}.tmp"  # a save in progress in a running process
+    mine.write_text("x")
+    assert remove_stale_temporaries(tmp_path) == [] and mine.exists()
