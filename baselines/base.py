@@ -420,7 +420,7 @@ def _build_config(
 #: name -> Registrator subclass, or "module:Class" imported on first use.
 LEARNED_DISPLAY_NAMES: dict[str, str] = {
     "omnet": "OMNet", "dcp": "DCP", "prnet": "PRNet", "rpmnet": "RPMNet", "idam": "IDAM",
-    "pointnetlk": "PointNetLK", "fmr": "FMR", "deepgmr": "DeepGMR",
+    "pointnetlk": "PointNetLK", "pointnetlk_revisited": "PointNetLKRevisited", "fmr": "FMR", "deepgmr": "DeepGMR",
 }
 """Learned networks, entering the grid through adapters around ``src.train`` checkpoints."""
 

@@ -74,7 +74,7 @@ register_resolvers()
 GRID_FORMAT = 1
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SAMPLINGS = ("os", "ts")
-PARTIALS = ("prnet", "rpmnet")
+PARTIALS = ("prnet", "rpmnet", "none")
 CLASSICAL_NAMES = {"icp": "ICP", "fgr": "FGR", "goicp": "Go-ICP", "symmetric_icp": "Symmetric ICP",
                    "identity": "Identity (no registration)"}
 TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
@@ -89,9 +89,9 @@ ConfigStore.instance().store(name="benchmark_grid", node={"defaults": ["_self_",
 
 
 def display_name(method: str) -> str:
-    from baselines.learned.adapter import DISPLAY_NAMES
+    from baselines.base import LEARNED_DISPLAY_NAMES
 
-    return CLASSICAL_NAMES.get(method) or DISPLAY_NAMES.get(method) or method
+    return CLASSICAL_NAMES.get(method) or LEARNED_DISPLAY_NAMES.get(method) or method
 
 
 # --- composing the experiments --------------------------------------------------------------------
@@ -246,7 +246,7 @@ class MethodFactory:
         """Build the method once per checkpoint it names (ConfigError / CheckpointError early)."""
         options = method_options(self.cfg, method)
         raw = options.get("checkpoint")
-        if not self.is_learned(method) or options.get("fresh_weights") or not isinstance(raw, Mapping):
+        if not self.is_learned(method) or options.get("fresh_weights") or options.get("weights") or not isinstance(raw, Mapping):
             self.build(method, "*")
             return
         if not raw:
@@ -259,12 +259,12 @@ class MethodFactory:
         checkpoint for this cell)."""
         options = method_options(self.cfg, method)
         checkpoint = None
-        if self.is_learned(method) and not options.get("fresh_weights"):
+        if self.is_learned(method) and not options.get("fresh_weights") and not options.get("weights"):
             raw = options.get("checkpoint")
             if raw is None or raw == "":
                 raise CheckpointError(
                     f"method '{method}' needs a checkpoint: set method_options.{method}.checkpoint=PATH "
-                    f"(a .ckpt written by `python -m src.train model={method}`)"
+                    f"(a .ckpt written by `python -m src.train model={method}`) or .weights=official:<name>"
                 )
             checkpoint = checkpoint_for(raw, cell_key)
             if checkpoint is None:
@@ -280,10 +280,14 @@ class MethodFactory:
         return self._cache[key]
 
     def identity(self, registrator: Registrator) -> dict[str, Any]:
-        """What defines the method's results: its name and options (+ the checkpoint's sha256)."""
+        """What defines the method's results: its name and options (+ the checkpoint's or weights' sha256)."""
         config = registrator.config.to_dict()
         for key in ("device", "batch_size"):  # same results, different speed
             config.pop(key, None)
+        if config.get("weights"):
+            from baselines.learned.published import weights_sha256
+
+            config["weights_sha256"] = weights_sha256(config["weights"])
         checkpoint = config.get("checkpoint")
         if checkpoint:
             if checkpoint not in self._digests:

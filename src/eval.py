@@ -3,6 +3,11 @@
     python -m src.eval +exp=unseen_categories     # the shipped checkpoint for it (checkpoints/*.json)
     python -m src.eval +exp=unseen_categories ckpt_path=outputs/.../checkpoints/best-*.ckpt
     python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
+    python -m src.eval model=dcp +exp=dcp_protocol data=modelnet40 weights=official:dcp_v1   # published weights
+
+``weights`` (instead of ``ckpt_path``): ``official:<name>`` or a file of a known layout, imported by
+:mod:`baselines.learned.published` into the configured model's network class (the network's
+settings come from the weights' registry entry; the metric convention from the experiment).
 """
 
 from __future__ import annotations
@@ -11,11 +16,11 @@ import logging
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
 from src.config import register_resolvers
-from src.errors import CheckpointError
+from src.checkpoint_io import check_checkpoint
+from src.errors import ConfigError
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
 from src.runtime import (
@@ -33,19 +38,7 @@ log = logging.getLogger(__name__)
 
 def load_checkpoint(path: str, expected_target: str) -> RegistrationModule:
     """Load a RegistrationModule checkpoint, checking it holds the configured network."""
-    if not Path(path).is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    try:
-        hparams = torch.load(path, map_location="cpu", weights_only=False).get("hyper_parameters", {})
-    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
-        raise CheckpointError(f"{path} is not a readable PyTorch checkpoint ({type(err).__name__})") from err
-    found = (hparams.get("network") or {}).get("_target_")
-    if found is None:
-        raise CheckpointError(f"{path} was not written by src.train (no network config inside)")
-    if found != expected_target:
-        raise CheckpointError(
-            f"{path} holds a {found} network but the config asks for {expected_target}: pass model=<its model>"
-        )
+    check_checkpoint(path, expected_target)
     return RegistrationModule.load_from_checkpoint(path, map_location="cpu")
 
 
@@ -59,10 +52,24 @@ def resolve_checkpoint(cfg: DictConfig) -> str:
     return str(path)
 
 
+def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
+    """The module to evaluate and what it was loaded from (``weights`` or a checkpoint)."""
+    weights = cfg.get("weights")
+    if not weights:
+        ckpt_path = resolve_checkpoint(cfg)
+        return load_checkpoint(ckpt_path, cfg.model.network._target_), ckpt_path
+    if cfg.ckpt_path:
+        raise ConfigError("give either ckpt_path=PATH or weights=official:<name>, not both")
+    from baselines.learned.published import published_module
+
+    module = published_module(str(weights), cfg.model, expected_target=cfg.model.network._target_)
+    log.info("evaluating published weights %s (network: %s)", weights, module.hparams["network"])
+    return module, str(weights)
+
+
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     output_dir = Path(cfg.output_dir)
-    ckpt_path = resolve_checkpoint(cfg)
-    module = load_checkpoint(ckpt_path, cfg.model.network._target_)
+    module, ckpt_path = load_module(cfg)
     if global_rank() == 0:
         save_resolved_config(cfg, output_dir)
     datamodule = hydra.utils.instantiate(cfg.data)

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from baselines.base import MIN_POINTS
 from src.data.datamodule import NORMALS
-from src.data.transforms import PARTIAL_MANNERS, SAMPLINGS
+from src.data.transforms import PARTIAL_MANNERS, PERTURBATIONS, SAMPLINGS
 from src.errors import ConfigError, user_error_behind
 
 
@@ -93,7 +93,8 @@ FLAG = Rule(bool)
 
 _NETWORK_COUNTS = ("num_iters", "num_train_iters", "num_sk_iter", "max_iter", "n_blocks", "n_heads", "k", "emb_dims",
                    "ff_dims", "d_model", "n_clusters", "dim_k", "feat_dim", "num_neighbors", "normals_k",
-                   "num_keypoints", "topk", "decoder_points", "keep_divisor")
+                   "num_keypoints", "topk", "decoder_points", "keep_divisor", "eval_max_iter",
+                   "num_random_points")
 _NETWORK_SCALES = ("width", "overlap_dist", "radius", "match_dist", "delta", "xtol", "temp_factor")
 _NETWORK_WEIGHTS = ("rot_loss_weight", "trans_loss_weight", "cycle_weight", "feature_alignment_weight", "chamfer_weight",
                     "transform_weight", "feature_loss_weight", "inlier_weight")
@@ -119,6 +120,10 @@ RULES: dict[str, Rule] = {
     "data.pair.rpmnet_p_keep": FRACTION,
     "data.pair.rpmnet_num_points": integer(MIN_POINTS),
     "data.pair.overlap_ratio": number(0.0, 1.0, low_open=True, nullable=True),
+    "data.pair.perturbation": Rule(str, choices=PERTURBATIONS),
+    "data.pair.twist_mag": NON_NEGATIVE,
+    "data.pair.twist_random_mag": FLAG,
+    "data.pair.unit_cube": FLAG,
     "data.normals": Rule(str, choices=NORMALS),
     "data.remove_axisymmetric": FLAG,
     "data.batch_size": integer(1, nullable=True),  # null: a test-only data config (src.train refuses it)
@@ -132,6 +137,7 @@ RULES: dict[str, Rule] = {
     "data.build.num_samplings": integer(1),
     "data.build.num_points": integer(MIN_POINTS),
     "data.build.seed": integer(),
+    "data.build.normals": FLAG,
     # model (conf/model/*.yaml, conf/recipe/*.yaml): the RegistrationModule, then network fields by name
     "model.lr": POSITIVE,
     "model.weight_decay": NON_NEGATIVE,

@@ -55,3 +55,17 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
     src, ref, _ = _batch(b=2)
     with torch.no_grad():
         torch.testing.assert_close(loaded(src, ref), module(src, ref))
+
+
+def test_dcp_v1_doubles_the_embeddings_as_the_official_identity_pointer():
+    # DCP-v1's Identity pointer returns its inputs, which are then added to them: Φ = 2F (model.py 460-463)
+    torch.manual_seed(0)
+    model = DCP(width=0.125, pointer=False).eval()
+    src, ref, _ = _batch(b=2)
+    with torch.no_grad():
+        feat_src, feat_ref = model.embedding(src), model.embedding(ref)
+        torch.testing.assert_close(model(src, ref)["transforms"][0], model.head(2 * feat_src, 2 * feat_ref, src, ref))
+        assert not torch.allclose(model.head(feat_src, feat_ref, src, ref), model.head(2 * feat_src, 2 * feat_ref, src, ref))
+    cfg = compose_model_config("dcp_v1", 1.0)
+    assert cfg.network.pointer is False and cfg.lr == compose_model_config("dcp", 1.0).lr
+    assert instantiate(cfg).network.pointer is None

@@ -6,18 +6,19 @@ whole batches through the network with torch, on the GPU when one is available (
 One subclass per learned method is registered with :func:`~baselines.base.register_registrator`
 under its method name:
 
-======================  ===========================================
-name                    network the checkpoint must hold
-======================  ===========================================
-``omnet``               ``src.models.omnet.OMNet``
-``dcp``                 ``baselines.learned.dcp.DCP``
-``prnet``               ``baselines.learned.prnet.PRNet``
-``rpmnet``              ``baselines.learned.rpmnet.RPMNet``
-``idam``                ``baselines.learned.idam.IDAM``
-``pointnetlk``          ``baselines.learned.pointnetlk.PointNetLK``
-``fmr``                 ``baselines.learned.fmr.FMR``
-``deepgmr``             ``baselines.learned.deepgmr.DeepGMR``
-======================  ===========================================
+==========================  ==============================================================
+name                        network the checkpoint must hold
+==========================  ==============================================================
+``omnet``                   ``src.models.omnet.OMNet``
+``dcp``                     ``baselines.learned.dcp.DCP``
+``prnet``                   ``baselines.learned.prnet.PRNet``
+``rpmnet``                  ``baselines.learned.rpmnet.RPMNet``
+``idam``                    ``baselines.learned.idam.IDAM``
+``pointnetlk``              ``baselines.learned.pointnetlk.PointNetLK``
+``pointnetlk_revisited``    ``baselines.learned.pointnetlk_revisited.PointNetLKRevisited``
+``fmr``                     ``baselines.learned.fmr.FMR``
+``deepgmr``                 ``baselines.learned.deepgmr.DeepGMR``
+==========================  ==============================================================
 
 >>> import baselines.learned.adapter  # registers the names
 >>> from baselines import get_registrator
@@ -25,10 +26,12 @@ name                    network the checkpoint must hold
 >>> T = omnet.register_batch(src, ref)          # (B, 4, 4) in one forward pass
 >>> results = run_batches(omnet, pairs)         # like baselines.run_pairs, batched
 
-Each method requires ``checkpoint=PATH``; a missing file, an unreadable one, or a checkpoint of
-another network than the method name says raise :class:`~src.errors.CheckpointError` (one line)
-when the registrator is built, so a grid fails before it starts. The weights themselves are loaded
-lazily (:meth:`LearnedRegistrator.setup`), so the object stays cheap to build and to pickle.
+Each method requires ``checkpoint=PATH`` or ``weights=official:<name>`` (published weights imported
+by :mod:`baselines.learned.published`, e.g. ``get_registrator("dcp", weights="official:dcp_v1")``, or
+the path of such a file); a missing file, an unreadable one, or weights of another network than the
+method name says raise :class:`~src.errors.CheckpointError` (one line) when the registrator is
+built, so a grid fails before it starts. The weights themselves are loaded lazily
+(:meth:`LearnedRegistrator.setup`), so the object stays cheap to build and to pickle.
 
 ``fresh_weights=true`` (instead of a checkpoint) builds the network from ``conf/model/<name>.yaml``
 with freshly initialised weights — for timing only (:mod:`benchmarks.speed` labels it so); the
@@ -58,7 +61,6 @@ from baselines.runner import PairResult
 from src.errors import CheckpointError, ConfigError
 
 __all__ = [
-    "DISPLAY_NAMES",
     "LEARNED_METHODS",
     "LearnedConfig",
     "LearnedRegistrator",
@@ -75,11 +77,10 @@ LEARNED_METHODS: dict[str, str] = {
     "rpmnet": "baselines.learned.rpmnet.RPMNet",
     "idam": "baselines.learned.idam.IDAM",
     "pointnetlk": "baselines.learned.pointnetlk.PointNetLK",
+    "pointnetlk_revisited": "baselines.learned.pointnetlk_revisited.PointNetLKRevisited",
     "fmr": "baselines.learned.fmr.FMR",
     "deepgmr": "baselines.learned.deepgmr.DeepGMR",
 }
-#: method name -> the name the paper's tables use.
-DISPLAY_NAMES = LEARNED_DISPLAY_NAMES
 DEVICES = ("auto", "cpu", "cuda")
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -90,7 +91,9 @@ class LearnedConfig(RegistratorConfig):
 
     Attributes:
         checkpoint: a ``.ckpt`` written by ``src.train`` for this method's network (required
-            unless ``fresh_weights``).
+            unless ``weights`` or ``fresh_weights``).
+        weights: published weights instead of a checkpoint: ``official:<name>`` or the path of a
+            file of a known layout (:mod:`baselines.learned.published`).
         device: ``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda``.
         batch_size: pairs per forward pass in :func:`run_batches`.
         fresh_weights: build the network from ``conf/model/<name>.yaml`` with random weights
@@ -100,6 +103,7 @@ class LearnedConfig(RegistratorConfig):
     """
 
     checkpoint: str | None = None
+    weights: str | None = None
     device: str = "auto"
     batch_size: int = 64
     fresh_weights: bool = False
@@ -115,6 +119,8 @@ class LearnedConfig(RegistratorConfig):
             raise ConfigError(f"model_scale must be > 0, got {self.model_scale!r}")
         if self.checkpoint is not None:
             self.checkpoint = str(self.checkpoint)
+        if self.weights is not None:
+            self.weights = str(self.weights)
         self.model_overrides = tuple(str(o) for o in (self.model_overrides or ()))
 
 
@@ -136,23 +142,9 @@ def compose_model_config(model: str, model_scale: float, overrides: Sequence[str
 def read_checkpoint_network(path: str | Path) -> str:
     """The ``_target_`` of the network stored in a ``src.train`` checkpoint (CheckpointError if
     the file is missing, unreadable or was not written by ``src.train``)."""
-    import torch
+    from src.checkpoint_io import read_checkpoint  # here, not at module level: keeps `import baselines` light
 
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    try:
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
-        except RuntimeError:  # old (non-zip) serialisation cannot be memory-mapped
-            ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
-        raise CheckpointError(f"{path} is not a readable PyTorch checkpoint ({type(err).__name__})") from err
-    hparams = ckpt.get("hyper_parameters", {}) if isinstance(ckpt, dict) else {}
-    target = (hparams.get("network") or {}).get("_target_") if isinstance(hparams, dict) else None
-    if target is None:
-        raise CheckpointError(f"{path} was not written by src.train (no network config inside)")
-    return str(target)
+    return str(read_checkpoint(path)["hyper_parameters"]["network"]["_target_"])
 
 
 def checkpoint_digest(path: str | Path) -> str:
@@ -178,6 +170,9 @@ class LearnedRegistrator(Registrator):
     name: ClassVar[str] = "learned"
     needs_training: ClassVar[bool] = True
     needs_normals: ClassVar[bool] = False
+    # a network sees the clouds as given, by register() and by the batched run_batches alike
+    normalise_frame: ClassVar[bool] = False
+    point_budget: ClassVar[int | None] = None
     config_cls: ClassVar[type[RegistratorConfig]] = LearnedConfig
     network_target: ClassVar[str] = ""
 
@@ -186,14 +181,18 @@ class LearnedRegistrator(Registrator):
         cfg: LearnedConfig = self.config
         self._module = None
         self._device = None
+        sources = [name for name in ("checkpoint", "weights", "fresh_weights") if getattr(cfg, name)]
+        if len(sources) > 1:
+            raise ConfigError(f"{self.name}: give one of checkpoint=PATH, weights=official:<name> or fresh_weights=true")
         if cfg.fresh_weights:
-            if cfg.checkpoint:
-                raise ConfigError(f"{self.name}: give either checkpoint=PATH or fresh_weights=true, not both")
+            return
+        if cfg.weights:
+            self._check_weights(cfg.weights)
             return
         if not cfg.checkpoint:
             raise CheckpointError(
                 f"method '{self.name}' needs a checkpoint: pass checkpoint=PATH (a .ckpt written by "
-                f"`python -m src.train model={self.name}`)"
+                f"`python -m src.train model={self.name}`) or weights=official:<name>"
             )
         found = read_checkpoint_network(cfg.checkpoint)
         if found != self.network_target:
@@ -206,11 +205,25 @@ class LearnedRegistrator(Registrator):
 
     # -- labels ------------------------------------------------------------------------
 
+    def _check_weights(self, spec: str) -> None:
+        """Published weights must exist, be intact and fit this method's network (CheckpointError)."""
+        from baselines.learned.published import network_config, resolve
+
+        target = network_config(resolve(spec).entry)["_target_"]
+        if target != self.network_target:
+            other = _method_of_target(target)
+            raise CheckpointError(
+                f"{spec} holds a {target} network, not {self.network_target} (method '{self.name}'); "
+                f"use it as method '{other}'"
+            )
+
     @property
     def label(self) -> str:
-        """Display name; ``(untrained)`` marks freshly initialised weights."""
-        base = DISPLAY_NAMES.get(self.name, self.name)
-        return f"{base} (untrained)" if self.config.fresh_weights else base
+        """Display name; ``(untrained)`` marks freshly initialised weights, ``(official:<name>)`` published ones."""
+        base = LEARNED_DISPLAY_NAMES.get(self.name, self.name)
+        if self.config.fresh_weights:
+            return f"{base} (untrained)"
+        return f"{base} ({self.config.weights})" if self.config.weights else base
 
     # -- device and weights ------------------------------------------------------------
 
@@ -237,11 +250,16 @@ class LearnedRegistrator(Registrator):
         return module
 
     def setup(self) -> None:
-        """Load the checkpoint (or build fresh weights) onto the device, in eval mode. Idempotent."""
+        """Load the checkpoint (or the published weights, or build fresh ones) onto the device, in eval
+        mode. Idempotent."""
         if self._module is not None:
             return
         if self.config.fresh_weights:
             module = self._build_fresh()
+        elif self.config.weights:
+            from baselines.learned.published import published_module
+
+            module = published_module(self.config.weights, expected_target=self.network_target)
         else:
             from src.models.module import RegistrationModule
 
@@ -354,13 +372,14 @@ def run_batches(
 
 
 def _make_class(method: str, target: str) -> type[LearnedRegistrator]:
-    class_name = f"{DISPLAY_NAMES[method]}Registrator"
+    class_name = f"{LEARNED_DISPLAY_NAMES[method]}Registrator"
     cls = type(class_name, (LearnedRegistrator,), {
         "name": method,
         "network_target": target,
         "__module__": __name__,
         "__qualname__": class_name,
-        "__doc__": f"{DISPLAY_NAMES[method]} ({target}) from a src.train checkpoint; see LearnedRegistrator.",
+        "__doc__": f"{LEARNED_DISPLAY_NAMES[method]} ({target}) from a src.train checkpoint or published weights; "
+                   "see LearnedRegistrator.",
     })
     return cls
 

@@ -1,22 +1,25 @@
-"""DCP-v2 (Wang & Solomon, "Deep Closest Point", ICCV 2019) for :class:`~src.models.module.RegistrationModule`.
+"""DCP (Wang & Solomon, "Deep Closest Point", ICCV 2019) for :class:`~src.models.module.RegistrationModule`.
 
 Network (paper §4 and the official code, github.com/WangYueFt/dcp, README's DCP-v2 command
-``--emb_nn dgcnn --pointer transformer --head svd``):
+``--emb_nn dgcnn --pointer transformer --head svd``; DCP-v1 is ``--pointer identity``, ``pointer=False``):
 
 * embedding F: DGCNN with k = 20 on the coordinates, edge features [x_j, x_i], per-edge layers
   64-64-128-256 (BatchNorm + ReLU) with a max over the neighbours after each, concatenated (512) and
   mapped to ``emb_dims`` = 512 (:class:`~baselines.learned.common.correspondence.DGCNN`, static graph);
 * pointer φ: one-block transformer encoder–decoder, 4 heads, feed-forward 1024 (ReLU), dropout 0,
-  shared by both directions; Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X);
+  shared by both directions; Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X). DCP-v1's ``Identity``
+  pointer returns its inputs, which ``DCP.forward`` then adds to them (``model.py`` lines 340–345 and
+  460–463): Φ = 2F, i.e. the head's matching logits are 4× F_X·F_Yᵀ/√d. ``pointer=False`` does the same,
+  so the published DCP-v1 weights (trained with that factor) give the official estimates;
 * head: soft pointer m(x_i) = softmax(Φ_Y Φ_x_iᵀ / √d) and the SVD (Procrustes) solve between the
   source and its soft correspondences m(x_i)ᵀY (uniform weights), one shot (no iterations).
 
 Loss (paper Eq. 11, official code): MSE(R_predᵀ R_gt, I) + MSE(t_pred, t_gt) (mean over the
-entries); the paper's λ‖θ‖² is Adam's weight decay 1e-4 (``conf/model/dcp.yaml``). The official
+entries); the paper's λ‖θ‖² is Adam's weight decay (``conf/recipe/dcp.yaml``). The official
 option ``--cycle`` (off by default, not used for DCP-v2) is ``cycle=True``: the reverse transform is
 also solved by the head and MSE(R_ba R_ab, I) + mean‖R_baᵀ t_ab + t_ba‖² is added with weight 0.1.
-Optimiser (official ``main.py``): Adam, lr 1e-3, weight decay 1e-4, ×0.1 at epochs 75/150/200 of 250,
-batch 32 — see ``conf/model/dcp.yaml`` for the conversion to steps.
+Training recipe (official ``main.py``: optimiser, schedule, batch, epochs, checkpoint selection):
+``conf/recipe/dcp.yaml``.
 
 Deviations: channel-last Linear layers instead of 1×1 convolutions (same function); PyTorch's
 LayerNorm (biased variance, ε inside the square root) instead of the code's hand-written one
@@ -36,7 +39,7 @@ from baselines.learned.common.correspondence import AttentionPointer, DGCNN, mat
 
 
 class DCP(nn.Module):
-    """DCP-v2: DGCNN + transformer pointer + soft correspondences + SVD."""
+    """DCP-v2 (``pointer=True``) or DCP-v1: DGCNN + pointer + soft correspondences + SVD."""
 
     def __init__(
         self,
@@ -63,9 +66,11 @@ class DCP(nn.Module):
 
     def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:
         feat_src, feat_ref = self.embedding(points_src), self.embedding(points_ref)
-        if self.pointer is not None:
+        if self.pointer is None:  # the official Identity pointer: Φ = F + F
+            phi_src, phi_ref = feat_src, feat_ref
+        else:
             phi_src, phi_ref = self.pointer(feat_src, feat_ref)
-            feat_src, feat_ref = feat_src + phi_src, feat_ref + phi_ref
+        feat_src, feat_ref = feat_src + phi_src, feat_ref + phi_ref
         transform_ab = self.head(feat_src, feat_ref, points_src, points_ref)
         out = {"transforms": [transform_ab]}
         if self.cycle:

@@ -11,14 +11,28 @@ Facts taken from the authors' code (hmgoforth/PointNetLK, ``ptlk/pointlk.py``, `
 
 * encoder: shared MLP 3-64-64 | 64-128-1024 (Conv1d + BatchNorm + ReLU after every layer, the
   1024-wide one included), max pooling, ``dim_k = 1024``, no T-net;
-* LK: step δ = 1e-2 for all six twist parameters (not learned), at most 10 iterations, stop when the
-  batch's largest ‖Δξ‖ < 1e-7, both clouds mean-centred first (``p0_zero_mean = p1_zero_mean = True``)
-  and the centring undone on the result;
+* LK: step δ = 1e-2 for all six twist parameters (not learned), at most 10 iterations in training
+  (``train_pointlk.py --max-iter 10``) and 20 at test (``test_pointlk.py --max-iter 20``;
+  ``eval_max_iter``), stop when the batch's largest ‖Δξ‖ < 1e-7, both clouds mean-centred first
+  (``p0_zero_mean = p1_zero_mean = True``) and the centring undone on the result,
+  ``T(m_template)·g·T(−m_source)``;
 * BatchNorm: in training, one forward of each cloud in training mode updates the running statistics,
   then the encoder is switched to eval mode for the whole LK (Jacobian and iterations);
 * loss (``_loss_type = 1``, the default): ``rsq(r) + comp(g, igt)`` — the squared residual summed over
   the batch and features, plus ``mse(g·igt, I)·16`` = the batch mean of ‖G_est·G_gt⁻¹ − I‖²_F;
-* optimiser: Adam with PyTorch defaults (lr 1e-3), no weight decay, no schedule, batch 32, 200 epochs.
+* optimiser: Adam with PyTorch defaults (lr 1e-3), no weight decay, no schedule, batch 32, 200 epochs;
+* two-stage recipe (``ex1_train.sh``): a PointNet classifier is trained on the same categories first
+  (:mod:`baselines.learned.pointnet_classifier`), and PointNetLK starts from its features
+  (``--transfer-from``): ``feature_init`` = a ``pointnet_classifier`` checkpoint or
+  ``official:learning3d_pointnet_classifier_features`` (:mod:`baselines.learned.published`), loaded
+  when training starts (:meth:`PointNetLK.train`) unless trained or imported weights were loaded.
+
+learning3d's PointNetLK (``models/pointnetlk.py``, the published ``learning3d_pointnetlk`` weights) is the
+same network with biases before BatchNorm (folded into the running means on import) and 10 iterations
+at test. Its ``ops/data_utils.py`` undoes the centring with the template's mean on both sides
+(``mean_shift`` builds the source's shift from ``p0_m``), so the transforms *it* reports are
+``T(m_t)·g·T(−m_t)``, whose translation is off by ``R(m_s − m_t)`` (about the true translation); the
+transforms here use each cloud's own mean.
 
 Framework mapping: the reference is LK's template (p0) and the source its moved cloud (p1), so g
 maps source → reference, the framework's ``transform_gt`` direction.
@@ -46,6 +60,15 @@ from baselines.learned.common.global_feature import (
 from src.geometry import se3_inverse
 
 
+def learning3d_reported_transform(transform: Tensor, points_src: Tensor, points_ref: Tensor) -> Tensor:
+    """What learning3d's PointNetLK reports for the estimate ``transform`` (source → reference, (B,4,4)):
+    its ``ops/data_utils.py`` builds the source's shift from the template's mean (``mean_shift``, line 19:
+    ``-p0_m``), so ``postprocess_data`` returns ``T(m_ref)·g·T(−m_ref) = transform·T(m_src − m_ref)``."""
+    shift = torch.eye(4, dtype=transform.dtype, device=transform.device).repeat(transform.shape[0], 1, 1)
+    shift[:, :3, 3] = (points_src.mean(dim=1) - points_ref.mean(dim=1)).to(transform.dtype)
+    return transform @ shift
+
+
 def pointnet_channels(dim_k: int, width: float) -> tuple[int, ...]:
     """PointNetLK's / FMR's encoder channels 3-64-64-64-128-dim_k, scaled by ``width``."""
     return (3, *(scaled_channels(c, width) for c in (64, 64, 64, 128, dim_k)))
@@ -57,19 +80,36 @@ class PointNetLK(nn.Module):
         dim_k: int = 1024,
         width: float = 1.0,
         max_iter: int = 10,
+        eval_max_iter: int = 20,
         delta: float = 1e-2,
         learn_delta: bool = False,
         xtol: float = 1e-7,
         feature_loss_weight: float = 1.0,
+        feature_init: str | None = None,
     ) -> None:
         super().__init__()
-        self.max_iter, self.xtol, self.feature_loss_weight = max_iter, xtol, feature_loss_weight
+        self.max_iter, self.eval_max_iter, self.xtol = max_iter, eval_max_iter, xtol
+        self.feature_loss_weight, self.feature_init = feature_loss_weight, feature_init
         self.encoder = PointNetEncoder(pointnet_channels(dim_k, width))
         step = torch.full((1, 6), float(delta))
         if learn_delta:
             self.delta = nn.Parameter(step)
         else:
             self.register_buffer("delta", step)
+        self._weights_loaded = False
+
+    def train(self, mode: bool = True) -> PointNetLK:
+        """Also applies ``feature_init`` the first time training starts on fresh weights."""
+        if mode and self.feature_init and not self._weights_loaded:
+            from baselines.learned.published import pointnet_features
+
+            self.encoder.load_state_dict(pointnet_features(self.feature_init, self.encoder))
+            self._weights_loaded = True
+        return super().train(mode)
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args, **kwargs) -> None:
+        self._weights_loaded = True  # trained or imported weights supersede feature_init
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def features(self, points: Tensor) -> Tensor:
         return self.encoder(points)[1]
@@ -79,8 +119,9 @@ class PointNetLK(nn.Module):
             with torch.no_grad():
                 self.features(points_ref - points_ref.mean(dim=1, keepdim=True))
                 self.features(points_src - points_src.mean(dim=1, keepdim=True))
+        iterations = self.max_iter if self.training else self.eval_max_iter
         with eval_mode(self.encoder):
-            result = lk_register(self.features, points_src, points_ref, self.delta, self.max_iter, self.xtol)
+            result = lk_register(self.features, points_src, points_ref, self.delta, iterations, self.xtol)
         return {"transforms": result.transforms, "residual": result.residual, "iterations": result.iterations}
 
     def loss(self, outputs: dict, transform_gt: Tensor) -> dict[str, Tensor]:

@@ -32,6 +32,7 @@ Transform = Callable[[Sample, np.random.Generator], Sample]
 SAMPLINGS = ("os", "ts")
 PARTIAL_MANNERS = ("prnet", "rpmnet", "none")
 PAIR_SAMPLINGS = ("independent_samplings", "single_sampling", "disjoint_subsets")
+PERTURBATIONS = ("euler", "twist")
 CLOUDS = ("src", "ref")
 
 
@@ -269,6 +270,10 @@ def build_pair_transforms(
     rpmnet_p_keep: float = 0.7,
     rpmnet_num_points: int = 1024,
     overlap_ratio: float | None = None,
+    perturbation: str = "euler",
+    twist_mag: float = 0.8,
+    twist_random_mag: bool = True,
+    unit_cube: bool = False,
 ) -> Compose:
     """The official OMNet code's pipelines (``dataset/transformations.py``, ``fetch_transform``).
 
@@ -284,12 +289,25 @@ def build_pair_transforms(
     applied to Y giving X" for PRNet's); the code, which produced the published numbers and for whose
     direction the metric Euler conventions (zyx / xyz) were chosen, is followed here.
 
+    ``perturbation="twist"`` (full clouds only): PointNetLK's protocol instead of the Euler-angle
+    transform, :func:`src.data.perturbations.build_twist_transforms` (``twist_mag``,
+    ``twist_random_mag``, ``unit_cube``).
+
     ``overlap_ratio`` (test-time study, PRNet manner only): the crop becomes
     :class:`OverlapRatioCrop` — partial X, then Y = two adjacent parts of the overlapping and
     non-overlapping regions in the requested proportion.
     """
     if partial not in PARTIAL_MANNERS:
         raise ConfigError(f"data.partial must be one of {PARTIAL_MANNERS}, got {partial!r}")
+    if perturbation not in PERTURBATIONS:
+        raise ConfigError(f"data.pair.perturbation must be one of {PERTURBATIONS}, got {perturbation!r}")
+    if perturbation == "twist":
+        if partial != "none" or overlap_ratio is not None:
+            raise ConfigError("data.pair.perturbation=twist is PointNetLK's protocol on full clouds: use partial=none")
+        from src.data.perturbations import build_twist_transforms  # imports this module
+
+        return build_twist_transforms(pair_sampling, sampling, num_points, twist_mag, twist_random_mag, unit_cube,
+                                      noise_sigma, noise_clip)
     pick = PickPair(sampling, pair_sampling, num_points)
     noise = GaussianNoise(noise_sigma, noise_clip)
     if overlap_ratio is not None:

@@ -6,10 +6,14 @@
 * :func:`lk_jacobian` — PointNetLK's finite-difference Jacobian of a global feature φ w.r.t. the six
   twist parameters at the template: ``J_k = (φ(P) − φ(exp(−δ_k e_k) P)) / δ_k`` (a backward
   difference of ξ ↦ φ(exp(ξ) P) at ξ = 0, step δ = 1e-2 in both official codes).
-* :func:`inverse_compositional_lk` — the inverse-compositional LK loop of PointNetLK and FMR:
-  J and its pseudo-inverse once at the template, then ``r = φ(g·source) − φ(template)``,
-  ``Δξ = −J⁺ r``, ``g ← exp(Δξ)·g``, stopped when max‖Δξ‖ < xtol (1e-7) or after ``max_iter``.
-  :func:`lk_register` wraps it with the official mean-centring of both clouds.
+* :func:`pointnet_jacobian` — PointNetLK-Revisited's analytical Jacobian of a PointNet's max-pooled
+  feature w.r.t. the twist: the chain rule through the per-point layers (Linear, eval-mode BatchNorm,
+  ReLU mask) at the point that wins each feature's max pool, times the warp Jacobian of ``exp(ξ)·p``.
+* :func:`inverse_compositional_lk` — the inverse-compositional LK loop of PointNetLK, FMR and
+  PointNetLK-Revisited: J (finite differences, or a ``jacobian_fn``) and its pseudo-inverse once at
+  the template, then ``r = φ(g·source) − φ(template)``, ``Δξ = −J⁺ r``, ``g ← exp(Δξ)·g``, stopped
+  when max‖Δξ‖ < xtol (1e-7) or after ``max_iter``. :func:`lk_register` wraps it with the official
+  mean-centring of both clouds.
 * :class:`FeatureMetricDecoder` and :func:`chamfer_distance` — FMR's decoder (global feature → points
   through FC 1024-1024-512-256-3·n with BatchNorm/ReLU and a final tanh) and its Chamfer loss
   (squared distances, mean of each direction, as FMR's code).
@@ -36,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.learned.common.encoders import knn_indices
+from baselines.learned.common.encoders import SharedMLP, knn_indices
 from baselines.learned.common.procrustes import weighted_procrustes
 from src.geometry import se3_apply, se3_from_rt
 
@@ -99,6 +103,8 @@ def composed_identity_error(g: Tensor, h: Tensor) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 
 FeatureFn = Callable[[Tensor], Tensor]
+#: points (B,N,3) -> (global feature φ (B,K), Jacobian ∂φ(exp(ξ)·P)/∂ξ at ξ = 0 (B,K,6))
+JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 
 
 @contextlib.contextmanager
@@ -156,10 +162,12 @@ def lk_pseudo_inverse(jacobian: Tensor) -> Tensor:
 class LKResult:
     """``transforms``: g (source → template) after each of the ``max_iter`` iterations (repeated after an
     early stop, as the official ``g_series``); ``residual``: the last φ(g·source) − φ(template) (B, K);
+    ``previous_residual``: the one before it (None after a single iteration; the official ``prev_r``);
     ``iterations``: updates actually made; ``jacobian`` (B, K, 6)."""
 
     transforms: list[Tensor]
     residual: Tensor
+    previous_residual: Tensor | None
     iterations: int
     jacobian: Tensor
 
@@ -168,27 +176,33 @@ def inverse_compositional_lk(
     feature_fn: FeatureFn,
     template: Tensor,
     source: Tensor,
-    delta: Tensor,
+    delta: Tensor | None,
     max_iter: int = 10,
     xtol: float = 1e-7,
+    jacobian_fn: JacobianFn | None = None,
 ) -> LKResult:
     """Inverse-compositional LK on global features: find g with φ(g·source) ≈ φ(template).
 
-    J (and J⁺) are computed once at the template; each iteration ``r = φ(g·source) − φ(template)``,
-    ``Δξ = −J⁺ r``, ``g ← exp(Δξ) g``; stops when the largest ‖Δξ‖ of the batch is below ``xtol``.
-    Gradients flow through every step (both official codes train through the whole loop).
+    J (and J⁺) are computed once at the template — by finite differences with step ``delta``
+    (:func:`lk_jacobian`), or by ``jacobian_fn`` (e.g. :func:`pointnet_jacobian`), which also returns
+    φ(template); each iteration ``r = φ(g·source) − φ(template)``, ``Δξ = −J⁺ r``, ``g ← exp(Δξ) g``;
+    stops when the largest ‖Δξ‖ of the batch is below ``xtol``. Gradients flow through every step
+    (the official codes train through the whole loop) and through J unless ``jacobian_fn`` detaches it.
     """
     if max_iter < 1:
         raise ValueError(f"max_iter must be >= 1, got {max_iter}")
     b = template.shape[0]
-    f_template = feature_fn(template)
-    jacobian = lk_jacobian(feature_fn, template, delta, f_template)
+    if jacobian_fn is None:
+        f_template = feature_fn(template)
+        jacobian = lk_jacobian(feature_fn, template, delta, f_template)
+    else:
+        f_template, jacobian = jacobian_fn(template)
     pinv = lk_pseudo_inverse(jacobian)
     g = torch.eye(4, dtype=template.dtype, device=template.device).expand(b, 4, 4)
     transforms: list[Tensor] = []
-    residual = None
+    residual = previous = None
     for _ in range(max_iter):
-        residual = feature_fn(se3_apply(g, source)) - f_template
+        previous, residual = residual, feature_fn(se3_apply(g, source)) - f_template
         dx = -(pinv @ residual.unsqueeze(-1)).squeeze(-1)
         if float(dx.detach().norm(dim=1).max()) < xtol:
             break
@@ -196,7 +210,58 @@ def inverse_compositional_lk(
         transforms.append(g)
     iterations = len(transforms)
     transforms += [g] * (max_iter - iterations)
-    return LKResult(transforms, residual, iterations, jacobian)
+    return LKResult(transforms, residual, previous, iterations, jacobian)
+
+
+def pointnet_jacobian(mlp: SharedMLP, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Max-pooled PointNet feature φ(P) (B,K) of ``mlp`` and its analytical Jacobian (B,K,6)
+    ∂φ(exp(ξ)·P)/∂ξ at ξ = 0 (the sign convention of :func:`lk_jacobian`).
+
+    PointNetLK-Revisited (Li et al., CVPR 2021; ``utils.feature_jac``, ``compute_warp_jac`` and
+    ``AnalyticalPointNetLK.Cal_Jac``): per point, ∂f/∂p is the product over the layers of the weight,
+    the BatchNorm scale γ/√(σ²+ε) (running statistics: the module must be in eval mode) and the ReLU
+    mask (pre-activation > 0); feature k takes it at the point that wins its max pool, times the warp
+    Jacobian ∂(exp(ξ)p)/∂ξ = [−[p]× | I]. The official code differentiates exp(−ξ)p and updates with
+    +J⁺r: the same step. The last layer is evaluated at the winning points only. J is detached (the
+    official code builds it from detached weights and masks); φ keeps its graph. ``mlp`` must be
+    Linear / BatchNorm / ReLU triples (a :class:`~baselines.learned.common.encoders.SharedMLP`).
+    """
+    layers = list(mlp.layers)
+    if len(layers) % 3 or not all(
+        isinstance(a, nn.Linear) and isinstance(b, nn.BatchNorm1d) and isinstance(c, nn.ReLU)
+        for a, b, c in zip(layers[::3], layers[1::3], layers[2::3])
+    ):
+        raise ValueError("pointnet_jacobian needs Linear + BatchNorm + ReLU layers (SharedMLP with batch_norm)")
+    if any(layer.training for layer in layers[1::3]):
+        raise ValueError("pointnet_jacobian needs BatchNorm in eval mode (see eval_mode)")
+    x, tangent = points, None  # tangent: ∂x/∂p (B, N, 3, C), per point
+    blocks = [layers[i : i + 3] for i in range(0, len(layers), 3)]
+    for i, (linear, norm, relu) in enumerate(blocks):
+        pre = norm(linear(x))
+        scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)
+        if i == len(blocks) - 1:
+            x = relu(pre)
+            break
+        with torch.no_grad():
+            step = linear.weight.t() * scale  # (C_in, C_out)
+            tangent = step.expand(*points.shape[:2], *step.shape) if tangent is None else tangent @ step
+            tangent = tangent * (pre > 0).unsqueeze(-2)
+        x = relu(pre)
+    features, winner = x.max(dim=1)  # (B, K): the point each feature's max pool takes
+    with torch.no_grad():
+        b, k = winner.shape
+        index = winner.unsqueeze(-1)
+        weight = linear.weight * scale.unsqueeze(-1)  # (K, C)
+        if tangent is None:  # a single layer: ∂(Wp)/∂p = W everywhere
+            at_winner = weight.expand(b, k, 3)
+        else:
+            gathered = tangent.gather(1, index.unsqueeze(-1).expand(b, k, 3, tangent.shape[-1]))  # (B,K,3,C)
+            at_winner = torch.einsum("bkic,kc->bki", gathered, weight)
+        at_winner = at_winner * (features > 0).unsqueeze(-1)  # the ReLU mask at the winner
+        point = points.gather(1, index.expand(b, k, 3))  # (B,K,3)
+        # ∂f/∂ξ = ∂f/∂p · [−[p]× | I]: the rotation part is p × ∂f/∂p
+        jacobian = torch.cat((torch.linalg.cross(point, at_winner, dim=-1), at_winner), dim=-1)
+    return features, jacobian
 
 
 def center(points: Tensor) -> tuple[Tensor, Tensor]:
@@ -209,18 +274,20 @@ def lk_register(
     feature_fn: FeatureFn,
     points_src: Tensor,
     points_ref: Tensor,
-    delta: Tensor,
+    delta: Tensor | None,
     max_iter: int = 10,
     xtol: float = 1e-7,
+    jacobian_fn: JacobianFn | None = None,
 ) -> LKResult:
     """LK with the official mean-centring (``p0_zero_mean = p1_zero_mean = True``): the reference is the
     template, the source is moved; the returned transforms map the *uncentred* source to the reference,
-    ``T(m_ref) · g · T(−m_src)``. Run ``feature_fn``'s module in eval mode (see :func:`eval_mode`).
-    Runs in float32 even under autocast (:func:`full_precision`)."""
+    ``T(m_ref) · g · T(−m_src)`` (learning3d's ``postprocess_data`` composes ``T(−m_ref)`` instead, see
+    :mod:`baselines.learned.pointnetlk`). Run ``feature_fn``'s module in eval mode (see
+    :func:`eval_mode`). Runs in float32 even under autocast (:func:`full_precision`)."""
     with full_precision(points_src.device):
         src, mean_src = center(at_least_fp32(points_src))
         ref, mean_ref = center(at_least_fp32(points_ref))
-        result = inverse_compositional_lk(feature_fn, ref, src, delta, max_iter, xtol)
+        result = inverse_compositional_lk(feature_fn, ref, src, delta, max_iter, xtol, jacobian_fn)
         left, right = translation_matrix(mean_ref), translation_matrix(-mean_src)
         result.transforms = [left @ g @ right for g in result.transforms]
     return result

@@ -1,0 +1,385 @@
+"""Weights published by other projects, imported into this framework's networks.
+
+:data:`PUBLISHED` names every known file (``official:<name>``): where it lies (``../shared/weights/``,
+:func:`src.paths.shared_path`), its sha256, the network it fits (a ``conf/model`` config plus
+overrides), the protocol it was trained under (``conf/exp/<protocol>.yaml``), what its authors report
+and its license. ``weights=`` accepts such a name or the path of a file of a known layout (then the
+layout's registry entry gives the network; no sha256 is checked).
+
+One converter per source layout maps the published state dict onto our network strictly: every
+source tensor is used (BatchNorm statistics included), none is missing, and the result must fill the
+network's state dict exactly (``load_state_dict(strict=True)``). Conv1d/Conv2d kernels become Linear
+weights; a convolution bias followed by BatchNorm is folded into the running mean (μ' = μ − b, the same
+function: BatchNorm subtracts the mean). A file of another layout, an unreadable file, a wrong
+checksum or an unknown name raise one-line :class:`~src.errors.CheckpointError` / ConfigError.
+
+    >>> from baselines.learned.published import published_module
+    >>> module = published_module("official:dcp_v1")             # a RegistrationModule, eval mode
+    >>> get_registrator("dcp", weights="official:dcp_v1")        # the same through the adapter
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from src.errors import CheckpointError, ConfigError
+from src.paths import shared_path
+
+OFFICIAL = "official:"
+BATCHNORM_TENSORS = ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
+
+
+@dataclass(frozen=True)
+class Published:
+    """One published weights file (see the module docstring); ``reported`` holds the authors' numbers
+    for ``protocol`` (metric name → value, as ``reported_source`` states them)."""
+
+    name: str
+    file: str
+    sha256: str
+    layout: str
+    source: str
+    license: str
+    trained_on: str
+    method: str | None = None
+    model: str | None = None
+    model_overrides: tuple[str, ...] = ()
+    protocol: str | None = None
+    reported: Mapping[str, float] = field(default_factory=dict)
+    reported_source: str = ""
+
+
+PUBLISHED: dict[str, Published] = {p.name: p for p in (
+    Published(
+        name="dcp_v1",
+        file="dcp_v1.t7",
+        sha256="797d34fa5ef98593397233f2791225c38d8e45b02ce63041dd53643f74d081c1",
+        layout="dcp",
+        source="WangYueFt/dcp @ 43671b5, pretrained/dcp_v1.t7",
+        license="MIT (the repository's README)",
+        trained_on="ModelNet40, all 40 categories, train split, 1,024 points, clean, target = transformed source "
+                   "(once-sampled), Euler angles U[0°, 45°], t U[±0.5] (README's DCP-v1 command; data.py, main.py)",
+        method="dcp",
+        model="dcp_v1",
+        protocol="dcp_protocol",
+        reported={"RMSE(R)": 2.545697, "MAE(R)": 1.505548},
+        reported_source="Wang & Solomon, ICCV 2019, Table 5 (DGCNN + DCP-v1; the Table-1 experiment: ModelNet40, "
+                        "unseen point clouds); MSE(R) 6.480572. Its translation errors could not be read offline here.",
+    ),
+    Published(
+        name="learning3d_pointnetlk",
+        file="learning3d_pointnetlk.t7",
+        sha256="27549313110416815fc9b1776983b80406e4d4572d57f67f1a6f3ede0745481d",
+        layout="learning3d_pointnetlk",
+        source="vinits5/learning3d @ f9d6d17, pretrained/exp_pnlk/models/best_model.t7",
+        license="MIT",
+        trained_on="ModelNet40, all categories, train split, 1,024 points, clean full clouds, source = twist of magnitude "
+                   "U[0, 0.8] applied to the template; features from the classifier below "
+                   "(examples/train_PointNetLK.py, data_utils/dataloaders.py PNLKTransform(0.8, True))",
+        method="pointnetlk",
+        model="pointnetlk",
+        # learning3d tests with PointNetLK.forward's default maxiter=10 (examples/test_pnlk.py, models/pointnetlk.py:33)
+        model_overrides=("model.network.eval_max_iter=10",),
+        protocol="pointnetlk_protocol",
+        reported={"test loss": 0.134726},
+        reported_source="learning3d pretrained/exp_pnlk/run.log, best test loss (FrobeniusNormLoss of its own est_T "
+                        "+ summed squared feature residual, batches of 8, ModelNet40 test split)",
+    ),
+    Published(
+        name="learning3d_pointnet_classifier_features",
+        file="learning3d_pointnet_classifier_features.t7",
+        sha256="90ef1479ff4fa60417c226405ec687cc04e668cd2c09e669acd29301fc969af3",
+        layout="learning3d_pointnet",
+        source="vinits5/learning3d @ f9d6d17, pretrained/exp_classifier/models/best_ptnet_model.t7",
+        license="MIT",
+        trained_on="ModelNet40 40-class classification, 1,024 points (examples/train_pointnet.py): the features "
+                   "PointNetLK starts from (model.network.feature_init)",
+        reported={"test accuracy": 0.871961},
+        reported_source="learning3d pretrained/exp_classifier/run.log, epoch 200",
+    ),
+    Published(
+        name="pointnetlk_revisited",
+        file="pointnetlk_revisited_modelnet40.pth",
+        sha256="ee92c44ca91df52f96444d80052856375fbfa194b82f7c53b612d5a8e8e12390",
+        layout="pointnetlk_revisited",
+        source="Lilac-Lee/PointNetLK_Revisited @ 7494c01, logs/model_trained_on_ModelNet40_model_best.pth",
+        license="MIT",
+        trained_on="ModelNet40, first 20 categories (dataset/modelnet40_half1.txt), 1,000 points scaled into the unit "
+                   "cube, clean, twists of magnitude U[0, 0.8] (train.py defaults)",
+        method="pointnetlk_revisited",
+        model="pointnetlk_revisited",
+        protocol="pointnetlk_revisited_protocol",
+        reported_source="none: the README reports no numbers, and the paper's ModelNet40 tables are not available "
+                        "offline here",
+    ),
+)}
+
+
+# --- reading and converting ---------------------------------------------------------------------------
+
+
+def read_state_dict(path: str | Path) -> dict[str, Tensor]:
+    """A plain state dict (name → tensor) from a ``.t7``/``.pth`` file (CheckpointError otherwise)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"weights file {path} does not exist")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointError(f"{path} is not a readable PyTorch weights file ({type(err).__name__})") from None
+    if not isinstance(state, Mapping) or not state or not all(isinstance(v, Tensor) for v in state.values()):
+        raise CheckpointError(f"{path} does not hold a state dict (a mapping of names to tensors)")
+    return dict(state)
+
+
+class _Source:
+    """The tensors of a source state dict, taken one by one; what is left over is an error."""
+
+    def __init__(self, state: Mapping[str, Tensor], layout: str) -> None:
+        self.state, self.layout = dict(state), layout
+
+    def take(self, key: str) -> Tensor:
+        if key not in self.state:
+            raise CheckpointError(f"not a complete {self.layout} state dict: {key} is missing")
+        return self.state.pop(key)
+
+    def conv_bn(self, conv: str, bn: str, bias: bool) -> dict[str, Tensor]:
+        """A 1×1 convolution (+ bias) and its BatchNorm as our Linear (no bias) + BatchNorm tensors."""
+        weight = self.take(f"{conv}.weight")
+        stats = {k: self.take(f"{bn}.{k}") for k in BATCHNORM_TENSORS}
+        if bias:
+            stats["running_mean"] = stats["running_mean"] - self.take(f"{conv}.bias")
+        return {"linear": weight.reshape(weight.shape[0], -1), **stats}
+
+    def done(self) -> None:
+        if self.state:
+            extra = sorted(self.state)
+            raise CheckpointError(
+                f"not a {self.layout} state dict: {len(extra)} tensor(s) it does not use, e.g. {', '.join(extra[:3])}"
+            )
+
+
+def _linear_bn(prefix: str, block: Mapping[str, Tensor], linear: int, norm: int) -> dict[str, Tensor]:
+    out = {f"{prefix}.{linear}.weight": block["linear"]}
+    out.update({f"{prefix}.{norm}.{k}": v for k, v in block.items() if k != "linear"})
+    return out
+
+
+def _pointnet(blocks: Sequence[Mapping[str, Tensor]], prefix: str) -> dict[str, Tensor]:
+    """Blocks (conv, BN) as a :class:`~baselines.learned.common.encoders.PointNetEncoder` state dict."""
+    out: dict[str, Tensor] = {}
+    for i, block in enumerate(blocks):
+        out.update(_linear_bn(f"{prefix}mlp.layers", block, 3 * i, 3 * i + 1))
+    return out
+
+
+def convert_dcp(source: _Source) -> dict[str, Tensor]:
+    """DCP's ``DCP`` (``model.py``): ``emb_nn.conv1..5`` (no bias) + ``bn1..5`` and the SVD head's constant
+    ``head.reflect`` = diag(1, 1, −1) → :class:`~baselines.learned.dcp.DCP` with ``pointer=False``."""
+    blocks = [source.conv_bn(f"emb_nn.conv{i}", f"emb_nn.bn{i}", bias=False) for i in range(1, 6)]
+    reflect = source.take("head.reflect")
+    if not torch.equal(reflect, torch.diag(torch.tensor([1.0, 1.0, -1.0]))):
+        raise CheckpointError("not DCP's SVD head: head.reflect is not diag(1, 1, -1)")
+    out: dict[str, Tensor] = {}
+    for i, block in enumerate(blocks[:4]):
+        out.update(_linear_bn(f"embedding.layers.{i}.layers", block, 0, 1))
+    out.update(_linear_bn("embedding.fuse.layers", blocks[4], 0, 1))
+    return out
+
+
+def convert_learning3d_pointnet(source: _Source, prefix: str = "") -> dict[str, Tensor]:
+    """learning3d's ``PointNet(use_bn=True)``: ``conv1..5`` with biases + ``bn1..5`` → a PointNetEncoder
+    (3-64-64-64-128-1024)."""
+    return _pointnet([source.conv_bn(f"{prefix}conv{i}", f"{prefix}bn{i}", bias=True) for i in range(1, 6)], "")
+
+
+def convert_learning3d_pointnetlk(source: _Source) -> dict[str, Tensor]:
+    """learning3d's ``PointNetLK``: its ``feature_model`` PointNet and the twist step ``dt`` →
+    :class:`~baselines.learned.pointnetlk.PointNetLK` (``encoder`` and ``delta``)."""
+    encoder = convert_learning3d_pointnet(source, "feature_model.")
+    return {**{f"encoder.{k}": v for k, v in encoder.items()}, "delta": source.take("dt")}
+
+
+def convert_pointnetlk_revisited(source: _Source) -> dict[str, Tensor]:
+    """PointNetLK-Revisited's ``AnalyticalPointNetLK``: ``ptnet.mlp1..3`` = (Conv1d with bias, BatchNorm)
+    → :class:`~baselines.learned.pointnetlk_revisited.PointNetLKRevisited`."""
+    blocks = [source.conv_bn(f"ptnet.mlp{i}.0", f"ptnet.mlp{i}.1", bias=True) for i in (1, 2, 3)]
+    return _pointnet(blocks, "encoder.")
+
+
+#: layout → (converter, a tensor only that layout has)
+LAYOUTS: dict[str, tuple[Callable[[_Source], dict[str, Tensor]], str]] = {
+    "dcp": (convert_dcp, "emb_nn.conv1.weight"),
+    "learning3d_pointnetlk": (convert_learning3d_pointnetlk, "feature_model.conv1.weight"),
+    "learning3d_pointnet": (convert_learning3d_pointnet, "conv1.weight"),
+    "pointnetlk_revisited": (convert_pointnetlk_revisited, "ptnet.mlp1.0.weight"),
+}
+
+
+def detect_layout(state: Mapping[str, Tensor], path: str | Path) -> str:
+    found = [name for name, (_, key) in LAYOUTS.items() if key in state]
+    if len(found) != 1:
+        raise CheckpointError(
+            f"{path} is not a published state dict of a known layout ({', '.join(LAYOUTS)}); "
+            f"its first tensors: {', '.join(list(state)[:3])}"
+        )
+    return found[0]
+
+
+def convert(state: Mapping[str, Tensor], layout: str) -> dict[str, Tensor]:
+    """Our network's state dict from a published one of ``layout`` (strict, see the module docstring)."""
+    source = _Source(state, layout)
+    out = LAYOUTS[layout][0](source)
+    source.done()
+    return out
+
+
+# --- resolving names and files ------------------------------------------------------------------------
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def weights_sha256(spec: str) -> str:
+    """The sha256 that identifies ``weights`` (a grid cell's key): the registry's for ``official:<name>``
+    (checked whenever the file is loaded), the file's own for a path."""
+    spec = str(spec)
+    if spec.startswith(OFFICIAL):
+        return registry_entry(spec[len(OFFICIAL):]).sha256
+    return file_sha256(Path(spec).expanduser())
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """A ``weights`` spec resolved: its registry entry (the layout's for a plain path), the file and
+    the converted state dict."""
+
+    entry: Published
+    path: Path
+    state: dict[str, Tensor]
+
+
+def registry_entry(name: str) -> Published:
+    if name not in PUBLISHED:
+        known = ", ".join(OFFICIAL + n for n in PUBLISHED)
+        raise ConfigError(f"unknown published weights '{OFFICIAL}{name}'; known: {known}")
+    return PUBLISHED[name]
+
+
+def resolve(spec: str) -> Resolved:
+    """``official:<name>`` (the shared file, sha256 checked) or a path to a file of a known layout."""
+    spec = str(spec)
+    if spec.startswith(OFFICIAL):
+        entry = registry_entry(spec[len(OFFICIAL):])
+        path = shared_path("weights", entry.file)
+        if not path.is_file():
+            raise CheckpointError(
+                f"{spec}: {path} does not exist (the shared folder is $OMNET_SHARED_DIR or ../shared beside the "
+                f"repository; or pass the file's path instead of the name)"
+            )
+        digest = file_sha256(path)
+        if digest != entry.sha256:
+            raise CheckpointError(
+                f"{spec}: {path} has sha256 {digest[:12]}…, not the published file's {entry.sha256[:12]}…"
+            )
+        state, layout = read_state_dict(path), entry.layout
+    else:
+        path = Path(spec).expanduser()
+        state = read_state_dict(path)
+        layout = detect_layout(state, path)
+        entry = next(p for p in PUBLISHED.values() if p.layout == layout)
+    return Resolved(entry, path, convert(state, layout))
+
+
+def network_config(entry: Published) -> dict[str, Any]:
+    """The network config (``_target_`` + arguments) the entry's weights fit (full width)."""
+    from omegaconf import OmegaConf
+
+    from baselines.learned.adapter import compose_model_config
+
+    if entry.model is None:
+        raise CheckpointError(
+            f"{OFFICIAL}{entry.name} holds PointNet features, not a registration network: use it as "
+            f"model.network.feature_init of pointnetlk"
+        )
+    model = compose_model_config(entry.model, 1.0, entry.model_overrides)
+    return OmegaConf.to_container(model.network, resolve=True)
+
+
+def load_weights(network: nn.Module, state: Mapping[str, Tensor], spec: str) -> None:
+    """``network.load_state_dict(state, strict=True)``, a mismatch as one CheckpointError line."""
+    try:
+        network.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()
+        raise CheckpointError(f"{spec} does not fit {type(network).__name__}: {' '.join(first[:2])}") from None
+
+
+def published_module(spec: str, model_cfg: Mapping[str, Any] | None = None, expected_target: str | None = None):
+    """A :class:`~src.models.module.RegistrationModule` holding the published weights, in eval mode.
+
+    ``model_cfg`` (a ``conf/model`` config: optimiser, metric convention) gets the entry's network; by
+    default the entry's own ``conf/model/<model>.yaml``. ``expected_target``: the network class the
+    caller needs (CheckpointError naming the right method otherwise).
+    """
+    import hydra
+    from omegaconf import OmegaConf
+
+    resolved = resolve(spec)
+    network = network_config(resolved.entry)
+    if expected_target is not None and network["_target_"] != expected_target:
+        raise CheckpointError(
+            f"{spec} holds a {network['_target_']} network, not {expected_target}: use it with method/model "
+            f"'{resolved.entry.method}'"
+        )
+    if model_cfg is None:
+        from baselines.learned.adapter import compose_model_config
+
+        model_cfg = compose_model_config(resolved.entry.model, 1.0, resolved.entry.model_overrides)
+    plain = OmegaConf.to_container(model_cfg, resolve=True) if not isinstance(model_cfg, dict) else dict(model_cfg)
+    module = hydra.utils.instantiate({**plain, "network": network})
+    load_weights(module.network, resolved.state, spec)
+    return module.eval()
+
+
+def pointnet_features(spec: str, encoder: nn.Module) -> dict[str, Tensor]:
+    """PointNetLK's ``feature_init``: the state dict of ``encoder`` (a PointNetEncoder) from published
+    PointNet features (``official:learning3d_pointnet_classifier_features`` or such a file) or from a
+    ``src.train`` checkpoint of ``model=pointnet_classifier`` (its ``network.encoder``)."""
+    spec = str(spec)
+    if spec.startswith(OFFICIAL) or not spec.endswith(".ckpt"):
+        resolved = resolve(spec)
+        state = resolved.state
+        if resolved.entry.layout == "learning3d_pointnetlk":
+            state = {k[len("encoder."):]: v for k, v in state.items() if k.startswith("encoder.")}
+        elif resolved.entry.layout != "learning3d_pointnet":
+            raise CheckpointError(f"feature_init {spec} holds no PointNetLK features ({resolved.entry.layout} layout)")
+    else:
+        path = Path(spec)
+        if not path.is_file():
+            raise CheckpointError(f"feature_init checkpoint {path} does not exist")
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=False)
+            target = ckpt["hyper_parameters"]["network"]["_target_"]
+            weights = ckpt["state_dict"]
+        except Exception as err:  # noqa: BLE001 - any unreadable or foreign file is the same user error
+            raise CheckpointError(f"feature_init {path} is not a src.train checkpoint ({type(err).__name__})") from None
+        if target != "baselines.learned.pointnet_classifier.PointNetClassifier":
+            raise CheckpointError(f"feature_init {path} holds a {target}, not a pointnet_classifier")
+        state = {k[len("network.encoder."):]: v for k, v in weights.items() if k.startswith("network.encoder.")}
+    missing = sorted(set(encoder.state_dict()) - set(state))
+    if missing or any(state[k].shape != v.shape for k, v in encoder.state_dict().items()):
+        raise CheckpointError(f"feature_init {spec} does not fit this PointNetLK's encoder (other widths or layers)")
+    return state
