@@ -350,11 +350,11 @@ def run_pairs(
                     _raise_startup_error(desc, *msg[1:])
                 elif kind == "ok":
                     _, index, transform, seconds = msg
-                    slot.task = None
+                    slot.task, slot.deadline = None, math.inf  # idle: no deadline until its next pair
                     record(_finish(index, transform, seconds, timeout_s))
                 else:  # "error"
                     _, index, reason, seconds = msg
-                    slot.task = None
+                    slot.task, slot.deadline = None, math.inf
                     record(PairResult(index, np.eye(4), seconds, True, reason))
             # kill workers past their deadline
             now = time.monotonic()

@@ -132,6 +132,7 @@ class ToyConfig(RegistratorConfig):
     sleep_s: float = 0.0  # every call sleeps this long first
     raise_on: tuple[int, ...] = ()  # raise ValueError (two-line message)
     hang_on: tuple[int, ...] = ()  # sleep for an hour
+    slow_on: tuple[tuple[int, float], ...] = ()  # (size, seconds): sleep that long
     crash_on: tuple[int, ...] = ()  # kill the process: os._exit(3)
     nan_on: tuple[int, ...] = ()  # return a transform containing NaN
     scale_on: tuple[int, ...] = ()  # return a scaling (not a rigid transform)
@@ -161,6 +162,7 @@ class ToyRegistrator(Registrator):
             raise ValueError(f"toy failure on a {n}-point cloud\nsecond line")
         if n in cfg.hang_on:
             time.sleep(3600)
+        time.sleep(dict(cfg.slow_on).get(n, 0.0))
         if n in cfg.crash_on:
             os._exit(3)
         if n in cfg.nan_on:

@@ -201,7 +201,8 @@ def build_test_set(experiment: str, sampling: str, partial: str, data: str | Non
         raise ConfigError(f"experiment {experiment} has no test split (data.splits.test)")
     data_cfg = OmegaConf.to_container(cfg.data, resolve=True)
     definition = {k: v for k, v in data_cfg.items() if k not in _LOADER_KEYS}
-    definition["splits"] = {"test": data_cfg["splits"]["test"]}
+    if "splits" in data_cfg:  # a cache datamodule: of its splits only the test split defines the test set
+        definition["splits"] = {"test": data_cfg["splits"]["test"]}
     definition["content_hash"] = datamodule.cache.manifest.get("content_hash")
     definition["num_test_pairs"] = len(datamodule.datasets["test"])
     return TestSet(experiment, sampling, partial, cfg, datamodule.datasets["test"], definition)

@@ -1,12 +1,18 @@
-"""Figures of the paper's studies: error vs noise σ, vs overlap ratio, vs number of iterations.
+"""Figures of the paper's studies: error vs noise σ, vs overlap ratio, vs number of iterations; and the
+real scan pairs' errors against their true overlap.
 
     python -m benchmarks.plots multirun/sweep_noise/<time> multirun/sweep_overlap/<time> --out results/figures
+    python -m benchmarks.plots scan-pairs outputs/grid/scan_pairs [the grid's data.* overrides] [--out DIR]
 
 Inputs: collected frames (``results.parquet`` of :mod:`benchmarks.collect`, CSV) or multirun dirs.
 A figure is drawn when its x column (``noise_sigma``, ``overlap_ratio``, ``num_iters``) takes at
 least two values; each method (plus sampling / partial manner / experiment where those differ)
 is one line, the mean over repeated runs with their standard deviation as error bars. Written as
 ``<out>/error_vs_<study>.png`` and ``.pdf``.
+
+``scan-pairs`` reads a ``+benchmark=scan_pairs`` grid (:mod:`benchmarks.grid`): every method's per-pair
+Error(R) against the pair's true overlap (``scan_pairs_error_vs_overlap.png``) and the errors binned by
+overlap as Markdown (``scan_pairs_by_overlap.md``, also printed).
 
 The paper publishes these figures as images only, without numbers, so no curve of the paper is
 drawn. Where one of our points is a setting the paper's tables report (e.g. σ = 0 and σ = 0.01
@@ -17,6 +23,7 @@ with N = 4 on ModelNet40, see :mod:`benchmarks.paper`), the table value is marke
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from dataclasses import dataclass
@@ -32,6 +39,8 @@ from matplotlib.lines import Line2D  # noqa: E402
 
 from benchmarks.paper import attach_paper, canonical_experiment, default_paper_dir, load_paper_tables  # noqa: E402
 from benchmarks.tables import read_inputs  # noqa: E402
+from src.errors import UserError  # noqa: E402
+from src.metrics import SUCCESS_THRESHOLDS  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -166,7 +175,140 @@ def make_figures(frame: pd.DataFrame, out_dir: Path, studies: Sequence[str] = tu
     return written, notes
 
 
+# --- real scan pairs: errors against the true overlap ------------------------------------------------
+
+SCAN_PAIRS = "scan_pairs"
+OVERLAP_BINS = (0.5, 0.7)
+"""Inner edges of the overlap bins (< 50 %, 50-70 %, > 70 %)."""
+
+
+def grid_pairs(grid_dir: Path, test_set) -> pd.DataFrame:
+    """The per-pair rows (``pairs.parquet``) of a grid's last run on ``test_set`` (a
+    :class:`benchmarks.grid.TestSet`); every cell must have been computed on exactly that test set."""
+    path = grid_dir / "pairs.parquet"
+    if not path.is_file():
+        raise ValueError(f"{path} does not exist: run `python -m benchmarks.grid` first")
+    rows = pd.read_parquet(path)
+    rows = rows[(rows["experiment"] == test_set.experiment) & (rows["sampling"] == test_set.sampling.upper())
+                & (rows["partial"] == test_set.partial)]
+    if rows.empty:
+        raise ValueError(f"{path} holds no pairs of {test_set.key}")
+    expected = json.loads(json.dumps(test_set.definition, default=str))
+    for digest in rows["cell"].unique():
+        [summary] = [json.loads(p.read_text()) for p in (grid_dir / "cells").glob(f"*__{digest[:12]}.json")]
+        if summary["definition"]["test_set"] != expected:
+            raise ValueError(f"cell {summary['method']} of {grid_dir} ran on other pairs than {test_set.key} composed here: "
+                             "pass the data overrides the grid ran with")
+    return rows
+
+
+def scan_pair_rows(grid_dir: Path, overrides: Sequence[str] = ()) -> tuple[pd.DataFrame, str]:
+    """The per-pair rows of a ``+benchmark=scan_pairs`` grid with each pair's ``overlap``, ``source`` and
+    ``reference`` scans and the method's display ``label``; and the scan sets' names. The test set is
+    rebuilt from ``+exp=scan_pairs`` and ``overrides`` (the grid's data overrides)."""
+    from benchmarks.grid import build_test_set, display_name
+
+    test_set = build_test_set(SCAN_PAIRS, "ts", "prnet", None, overrides)
+    rows = grid_pairs(grid_dir, test_set)
+    dataset = test_set.dataset
+    meta = pd.DataFrame([{"pair": i, "overlap": pair.overlap, "source": dataset.names(i)[0],
+                          "reference": dataset.names(i)[1]} for i, pair in enumerate(dataset.pairs)])
+    rows = rows.merge(meta, on="pair", validate="many_to_one")
+    rows["label"] = rows["method"].map(display_name)
+    return rows, ", ".join(s.name for s in dataset.source.scan_sets)
+
+
+def overlap_bins(overlap: pd.Series, bins: Sequence[float] = OVERLAP_BINS) -> pd.Series:
+    """The bin of each overlap, labelled ``< 50 %``, ``50-70 %``, ``> 70 %`` (closed on the right)."""
+    edges = [0.0, *bins, 1.0]
+    pct = [f"{100 * e:g}" for e in edges]
+    labels = [f"< {pct[1]} %", *(f"{a}-{b} %" for a, b in zip(pct[1:-2], pct[2:-1])), f"> {pct[-2]} %"]
+    return pd.cut(overlap, edges, labels=labels, include_lowest=True)
+
+
+def overlap_table(rows: pd.DataFrame, bins: Sequence[float] = OVERLAP_BINS) -> str:
+    """Markdown: per method (rows, in grid order) and overlap bin (columns, then all pairs), the mean
+    Error(R) in degrees, the mean Error(t) and the fraction of pairs under (5°, 0.05); one table each."""
+    max_deg, max_t = SUCCESS_THRESHOLDS[-1]
+    data = rows.assign(bin=overlap_bins(rows["overlap"], bins),
+                       success=(rows["Error(R)"] < max_deg) & (rows["Error(t)"] < max_t))
+    columns = [*data["bin"].cat.categories, "all"]
+    methods = list(dict.fromkeys(data["label"]))
+    blocks = []
+    for metric, title, fmt in (("Error(R)", "Error(R), mean (degrees)", "{:.2f}"), ("Error(t)", "Error(t), mean", "{:.3f}"),
+                               ("success", f"success: Error(R) < {max_deg:g}° and Error(t) < {max_t:g}", "{:.0%}")):
+        lines = [f"**{title}**", "", "| Method | pairs | " + " | ".join(columns) + " |",
+                 "|:---|:---|" + "---:|" * len(columns)]
+        for method in methods:
+            own = data[data["label"] == method]
+            counts = own.groupby("bin", observed=False).size()
+            values = [*own.groupby("bin", observed=False)[metric].mean(), own[metric].mean()]
+            cells = ["--" if math.isnan(v) else fmt.format(v) for v in values]
+            lines.append(f"| {method} | {' / '.join(map(str, counts))} | " + " | ".join(cells) + " |")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks) + "\n"
+
+
+def plot_error_vs_overlap(rows: pd.DataFrame, path: Path, title: str, bins: Sequence[float] = OVERLAP_BINS) -> Path:
+    """Every pair's Error(R) (log scale) against its overlap, one colour and marker per method, with each
+    method's median per overlap bin as a horizontal bar."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    colors, markers = plt.rcParams["axes.prop_cycle"].by_key()["color"], "os^vDPX*"
+    edges = [0.0, *bins, 1.0]
+    low = max(float(rows["overlap"].min()) - 0.02, 0.0)
+    for i, (label, own) in enumerate(rows.groupby("label", sort=False)):
+        color = colors[i % len(colors)]
+        ax.scatter(own["overlap"], own["Error(R)"].clip(lower=1e-2), s=16, alpha=0.75, color=color,
+                   marker=markers[i % len(markers)], label=f"{label} ({len(own)} pairs)")
+        medians = own.groupby(overlap_bins(own["overlap"], bins), observed=False)["Error(R)"].median()
+        for lo, hi, median in zip(edges[:-1], edges[1:], medians):
+            if not math.isnan(median):
+                ax.hlines(max(median, 1e-2), max(lo, low), hi, color=color, lw=2, alpha=0.8)
+    for edge in bins:
+        ax.axvline(edge, color="grey", ls=":", lw=1)
+    ax.set_yscale("log")
+    ax.set_xlim(low, 1.0)
+    ax.set_xlabel("overlap (the smaller overlapping fraction of the two scans, under the ground truth)")
+    ax.set_ylabel("Error(R) (degrees)")
+    ax.grid(alpha=0.3, which="both", axis="y")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title(title, fontsize=10)
+    fig.text(0.5, 0.01, "One marker per ordered scan pair; bars: each method's median in the overlap bin.",
+             ha="center", va="bottom", fontsize=8)
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def scan_pairs_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.plots scan-pairs",
+                                     description="Errors of a +benchmark=scan_pairs grid against the pairs' overlap.")
+    parser.add_argument("grid_dir", type=Path, help="the grid's output folder (outputs/grid/scan_pairs)")
+    parser.add_argument("overrides", nargs="*", help="the data overrides the grid ran with, e.g. data.pair.min_overlap=0.2")
+    parser.add_argument("--out", type=Path, default=None, help="folder for the PNG and the Markdown (default: grid_dir)")
+    args = parser.parse_args(argv)
+    out = args.out or args.grid_dir
+    try:
+        rows, scan_sets = scan_pair_rows(args.grid_dir, args.overrides)
+    except (ValueError, UserError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    table = overlap_table(rows)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scan_pairs_by_overlap.md").write_text(table)
+    title = f"Real scan pairs ({scan_sets}): rotation error against overlap"
+    png = plot_error_vs_overlap(rows, out / "scan_pairs_error_vs_overlap.png", title)
+    print(table)
+    print(f"wrote {png}, {out / 'scan_pairs_by_overlap.md'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["scan-pairs"]:
+        return scan_pairs_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m benchmarks.plots", description=__doc__.split("\n\n")[0])
     parser.add_argument("inputs", nargs="+", help="collected frames (.parquet/.csv) or multirun dirs")
     parser.add_argument("--out", type=Path, default=Path("results/figures"))

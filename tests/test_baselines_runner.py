@@ -117,3 +117,13 @@ def test_open3d_method_in_worker_processes():
     for result in results:
         assert not result.failed
         np.testing.assert_allclose(result.transform, truth, atol=1e-4)
+
+
+def test_an_idle_worker_past_its_last_deadline_does_not_stop_the_run():
+    """Worker A finishes its only pair (1.5 s) and idles; B takes a second pair at 1.0 s that ends at
+    4.5 s, within its own 4 s timeout but after A's last deadline (4.0 s): the run must go on."""
+    sizes = [30, 31, 32]
+    slow = ((30, 1.5), (31, 1.0), (32, 3.5))
+    results = run_pairs(ToyRegistrator(slow_on=slow), _pairs(sizes), workers=2, timeout_s=4.0, progress=False)
+    for i, result in enumerate(results):
+        _check_ok(result, i)

@@ -10,13 +10,16 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from hydra import compose, initialize_config_dir
 
 from benchmarks.collect import collect
+from benchmarks.grid import run_grid
 from benchmarks.latex_check import check_latex, count_columns, tabular_rows, tabulars
 from benchmarks.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
-from benchmarks.plots import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures
+from benchmarks.plots import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures, main as plots_main
 from benchmarks.tables import build_table, main as tables_main, to_latex, to_markdown
-from src.paths import shared_path
+from scan_helpers import write_scan_set
+from src.paths import REPO_ROOT, shared_path
 
 METRICS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "Error(R)", "Error(t)")
 REAL_PAPER_DIR = shared_path("reference", "paper_tables")
@@ -190,3 +193,25 @@ def test_iteration_plot_points(paper_dir, tmp_path):
     stats = figure_data(pd.concat([frame, extra]), FIGURES["iterations"], load_paper_tables(paper_dir))
     assert sorted(stats.loc[stats["paper_value"].notna(), "num_iters"].unique()) == [4]
     assert stats["paper_value"].notna().sum() == 6
+
+
+def test_scan_pairs_table_and_plot_bin_a_grid_by_overlap(tmp_path, capsys):
+    """+benchmark=scan_pairs on a tiny generated scan set: overlaps 2/3, 2/3, 1/6, 1/6 (benchmarks.plots scan-pairs)."""
+    data = [f"data.source={write_scan_set(tmp_path / 'scans')}", "data.pair.num_points=64",
+            "data.pair.min_overlap=0.1", "data.pair.overlap_spacing=0.5"]
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        cfg = compose("benchmark_grid", overrides=[
+            "+benchmark=scan_pairs", "benchmark.methods=[identity,icp]",
+            "benchmark.overrides=[" + ",".join(f'"{o}"' for o in data) + "]",
+            "workers=0", "progress=false", "paper=false", f"output_dir={tmp_path / 'grid'}"])
+    pairs = run_grid(cfg).pairs
+    assert plots_main(["scan-pairs", str(tmp_path / "grid"), *data, "--out", str(tmp_path / "out")]) == 0
+    table = capsys.readouterr().out
+    identity = pairs[pairs["method"] == "identity"]["Error(R)"].to_numpy()  # pairs (a,b), (b,a), (b,c), (c,b)
+    low, mid = identity[2:].mean(), identity[:2].mean()
+    assert f"| Identity (no registration) | 2 / 2 / 0 | {low:.2f} | {mid:.2f} | -- | {identity.mean():.2f} |" in table
+    assert (tmp_path / "out" / "scan_pairs_error_vs_overlap.png").stat().st_size > 10_000
+    assert (tmp_path / "out" / "scan_pairs_by_overlap.md").read_text() in table
+    other = [*data[:2], "data.pair.min_overlap=0.5", data[3]]
+    assert plots_main(["scan-pairs", str(tmp_path / "grid"), *other]) == 2
+    assert "ran on other pairs than scan_pairs/ts/prnet" in capsys.readouterr().err

@@ -336,7 +336,7 @@ def median_spacing(points: np.ndarray) -> float:
 
 def overlap_fraction(points: np.ndarray, other: np.ndarray, radius: float) -> float:
     """Fraction of ``points`` within ``radius`` of ``other`` (both in the same frame)."""
-    return float((cKDTree(other).query(points)[0] < radius).mean())
+    return float((cKDTree(other).query(points, distance_upper_bound=radius)[0] < radius).mean())
 
 
 def nearest_indices(points: np.ndarray, centre: np.ndarray, k: int) -> np.ndarray:
