@@ -1,7 +1,9 @@
 """One interface for every registration method in the comparison grid.
 
 A :class:`Registrator` estimates the rigid transform ``T`` (4x4, float64) with
-``ref ≈ R @ src + t`` for a source cloud ``src`` (N, 3) and a reference cloud ``ref`` (M, 3).
+``ref ≈ R @ src + t`` for a source cloud ``src`` (N, 3) and a reference cloud ``ref`` (M, 3):
+:meth:`Registrator.register` returns ``T``, :meth:`Registrator.register_result` a
+:class:`~baselines.result.RegistrationResult` (``T``, time, failure and its reason, inlier fit).
 Classical methods (ICP, FGR, Symmetric ICP, Go-ICP) implement :meth:`Registrator._register`;
 learned networks get adapters that wrap a checkpoint behind the same interface, set
 ``needs_training = True`` and usually override :meth:`Registrator._register_batch` to run a
@@ -30,9 +32,9 @@ or runs unbounded on input far from what the methods are tuned for:
   transform of the whole clouds, so it applies to the full clouds unchanged (the runner's per-pair
   timeout stays the last guard). ``point_budget = None`` turns it off.
 
-Methods are looked up by name with :func:`get_registrator`; a method registers itself with
-:func:`register_registrator`, either eagerly (a class) or lazily (``"module:Class"``, so that
-``import baselines`` does not import Open3D, torch or an optional extension).
+Methods are looked up by name with :func:`get_registrator`: every record of
+:data:`baselines.methods.METHODS` is registered lazily (``"module:Class"``, so that ``import baselines``
+does not import Open3D, torch or an optional extension); :func:`register_registrator` adds others.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -47,6 +50,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from baselines.methods import METHODS, find_method
+from baselines.result import FIT_THRESHOLD, RegistrationResult, check_threshold, one_line
 from src.errors import ConfigError, PointCloudError
 
 __all__ = [
@@ -64,7 +69,6 @@ __all__ = [
     "register_registrator",
     "resolve_registrator",
     "rigid_transform",
-    "transform_problem",
 ]
 
 #: Fewest points a cloud may have: a rigid transform is not determined by fewer than 3.
@@ -150,32 +154,6 @@ def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
     d = np.sign(np.linalg.det(u @ vt)) or 1.0
     return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
-def transform_problem(transform: Any, atol: float = 1e-4) -> str | None:
-    """Why ``transform`` is not a proper rigid 4x4 transform, or ``None`` if it is.
-
-    Checks the shape, finiteness, the bottom row ``[0, 0, 0, 1]``, ``R^T R = I`` and
-    ``det R = +1`` (all to ``atol``).
-    """
-    try:
-        arr = np.asarray(transform, dtype=np.float64)
-    except (TypeError, ValueError):
-        return f"estimate is not numeric ({type(transform).__name__})"
-    if arr.shape != (4, 4):
-        return f"estimate has shape {tuple(arr.shape)}, expected (4, 4)"
-    if not np.isfinite(arr).all():
-        return "estimate contains NaN or infinite entries"
-    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
-        return f"estimate's bottom row is {np.round(arr[3], 6).tolist()}, expected [0, 0, 0, 1]"
-    rot = arr[:3, :3]
-    ortho = float(np.abs(rot.T @ rot - np.eye(3)).max())
-    if ortho > atol:
-        return f"estimate's rotation is not orthonormal (max |R^T R - I| = {ortho:.2e})"
-    det = float(np.linalg.det(rot))
-    if abs(det - 1.0) > atol:
-        return f"estimate's rotation has det {det:+.4f}, expected +1 (a reflection)"
-    return None
 
 
 # --------------------------------------------------------------------------------------
@@ -338,10 +316,34 @@ class Registrator(ABC):
         ``src`` is (N, 3) and ``ref`` (M, 3); N and M may differ. Raises PointCloudError for
         bad inputs. Registers in the working frame and within the point budget (module
         docstring); the result is returned as float64 as the method produced it (mapped back
-        to the input's frame); use :func:`transform_problem` (the runner does) to reject
-        non-rigid estimates.
+        to the input's frame); :meth:`register_result` (which the runners use) also rejects
+        non-rigid estimates and reports the time, failures and the inlier fit.
         """
         return self._register_conditioned(check_cloud(src, "src"), check_cloud(ref, "ref"))
+
+    def register_result(
+        self, src: Any, ref: Any, threshold: float | None = FIT_THRESHOLD, timeout_s: float | None = None
+    ) -> RegistrationResult:
+        """Register one pair as :meth:`register` does and report how it went.
+
+        The same input checks (PointCloudError for bad clouds) and :meth:`setup` errors raise; a
+        method that raises, or whose estimate is not a finite proper rigid 4x4, gives a failed
+        :class:`~baselines.result.RegistrationResult` (the identity, with the reason) instead.
+        ``threshold``: inlier distance of ``fitness`` / ``inlier_rmse``, in the clouds' units
+        (default :data:`~baselines.result.FIT_THRESHOLD` = 0.05; None: not evaluated).
+        ``timeout_s``: a call that took longer counts as timed out (a call in this process cannot be
+        interrupted; :func:`~baselines.runner.run_pairs` kills a worker past it).
+        """
+        check_threshold(threshold)
+        src, ref = check_cloud(src, "src"), check_cloud(ref, "ref")
+        self.setup()
+        start = time.perf_counter()
+        try:
+            estimate = self._register_conditioned(src, ref)
+        except Exception as exc:  # noqa: BLE001 - the method failed: recorded, not raised
+            return RegistrationResult.failure(one_line(exc), time.perf_counter() - start)
+        result = RegistrationResult.of_estimate(estimate, time.perf_counter() - start, timeout_s)
+        return result.with_fit(src, ref, threshold)
 
     def register_batch(self, src: Any, ref: Any) -> np.ndarray:
         """Register ``B`` pairs: ``src`` (B, N, 3), ``ref`` (B, M, 3) -> (B, 4, 4)."""
@@ -417,22 +419,9 @@ def _build_config(
 # Registry
 # --------------------------------------------------------------------------------------
 
-#: name -> Registrator subclass, or "module:Class" imported on first use.
-LEARNED_DISPLAY_NAMES: dict[str, str] = {
-    "omnet": "OMNet", "dcp": "DCP", "prnet": "PRNet", "rpmnet": "RPMNet", "idam": "IDAM",
-    "pointnetlk": "PointNetLK", "pointnetlk_revisited": "PointNetLKRevisited", "fmr": "FMR", "deepgmr": "DeepGMR",
-}
-"""Learned networks, entering the grid through adapters around ``src.train`` checkpoints."""
-
-_REGISTRY: dict[str, type[Registrator] | str] = {
-    "icp": "baselines.classical.icp:ICP",
-    "fgr": "baselines.classical.fgr:FGR",
-    "symmetric_icp": "baselines.classical.symmetric_icp:SymmetricICP",
-    "goicp": "baselines.classical.goicp:GoICP",
-    "identity": "baselines.classical.identity:Identity",
-    **{name: f"baselines.learned.adapter:{display}Registrator" for name, display in LEARNED_DISPLAY_NAMES.items()},
-}
-_ALIASES: dict[str, str] = {"go_icp": "goicp", "symicp": "symmetric_icp", "sym_icp": "symmetric_icp"}
+#: name -> Registrator subclass, or "module:Class" imported on first use: every record of
+#: :data:`baselines.methods.METHODS`, and what :func:`register_registrator` adds.
+_REGISTRY: dict[str, type[Registrator] | str] = {method.key: method.registrator for method in METHODS}
 
 
 def _normalise(name: str) -> str:
@@ -440,11 +429,12 @@ def _normalise(name: str) -> str:
 
 
 def register_registrator(name: str, target: type[Registrator] | str | None = None):
-    """Add a method to the registry; usable as a class decorator.
+    """Add a method outside :data:`baselines.methods.METHODS` (a test's, a plug-in's) to the registry;
+    usable as a class decorator.
 
     ``target`` is a Registrator subclass or a lazy ``"package.module:Class"`` path (imported
-    by :func:`get_registrator` on first use). Learned adapters register the same way, e.g.
-    ``register_registrator("omnet", "baselines.learned.omnet:OMNetRegistrator")``.
+    by :func:`get_registrator` on first use), e.g.
+    ``register_registrator("toy", "baselines.testing:ToyRegistrator")``.
     """
     key = _normalise(name)
 
@@ -463,9 +453,11 @@ def available_registrators() -> list[str]:
 
 
 def resolve_registrator(name: str) -> type[Registrator]:
-    """The Registrator class registered under ``name`` (ConfigError if unknown)."""
-    key = _normalise(name)
-    key = _ALIASES.get(key, key)
+    """The Registrator class registered under ``name`` (ConfigError if unknown): a method's key,
+    display name or alias (:func:`baselines.methods.find_method`), or a name given to
+    :func:`register_registrator`."""
+    method = find_method(name)
+    key = method.key if method is not None else _normalise(name)
     if key not in _REGISTRY:
         raise ConfigError(
             f"unknown registration method '{name}'; available: {', '.join(available_registrators())}"

@@ -1,10 +1,12 @@
 """Run a registration method over many pairs on the CPU: worker processes, per-pair
 timeouts, a progress bar, and no pair ever dropped.
 
-:func:`run_pairs` returns one :class:`PairResult` per input pair, in input order. A pair
-whose registration times out, raises, kills its worker process (e.g. a segfault in native
-code) or returns a transform that is not a finite proper rigid 4x4 is recorded with the
-identity as its estimate, ``failed=True`` and a one-line ``reason``.
+:func:`run_pairs` returns one :class:`~baselines.result.RegistrationResult` per input pair, in
+input order (each pair through :meth:`~baselines.base.Registrator.register_result`, so with its inlier
+fit at the default threshold). A pair whose registration times out, raises, kills its worker process
+(e.g. a segfault in native code), has bad clouds or returns a transform that is not a finite proper
+rigid 4x4 is recorded with the identity as its estimate, ``failed=True`` and a one-line ``reason``
+(``timed_out=True`` for a timeout).
 
 Processes. Each worker is a fresh interpreter (``spawn`` by default: forking a parent that
 already runs TBB/OpenMP/torch thread pools can deadlock). A worker receives the pickled
@@ -35,29 +37,16 @@ import pickle
 import time
 import traceback
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from typing import Any
 
-import numpy as np
+from baselines.base import Registrator
+from baselines.result import RegistrationResult, one_line
 
-from baselines.base import Registrator, transform_problem
-
-__all__ = ["PairResult", "run_pairs", "usable_cpus"]
+__all__ = ["run_pairs", "usable_cpus"]
 
 _THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 _STARTUP_TIMEOUT_S = 300.0
-
-
-@dataclass
-class PairResult:
-    """Outcome of one pair: the estimate (identity if failed), time, and failure reason."""
-
-    index: int
-    transform: np.ndarray = field(repr=False)
-    seconds: float
-    failed: bool = False
-    reason: str = ""
 
 
 def usable_cpus() -> list[int]:
@@ -68,20 +57,13 @@ def usable_cpus() -> list[int]:
         return list(range(os.cpu_count() or 1))
 
 
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    msg = text[0] if text else ""
-    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
-
-
-def _finish(index: int, transform: Any, seconds: float, timeout_s: float | None) -> PairResult:
-    """Turn a method's raw output into a PairResult, rejecting non-rigid estimates."""
-    problem = transform_problem(transform)
-    if problem is not None:
-        return PairResult(index, np.eye(4), seconds, True, f"non-rigid estimate: {problem}")
-    if timeout_s is not None and seconds > timeout_s:
-        return PairResult(index, np.eye(4), seconds, True, f"timed out: took {seconds:.1f} s > {timeout_s:g} s")
-    return PairResult(index, np.asarray(transform, dtype=np.float64), seconds)
+def _register_one(registrator: Registrator, src: Any, ref: Any, timeout_s: float | None) -> RegistrationResult:
+    """:meth:`~baselines.base.Registrator.register_result`, a pair with bad clouds recorded as failed too."""
+    start = time.perf_counter()
+    try:
+        return registrator.register_result(src, ref, timeout_s=timeout_s)
+    except Exception as exc:  # noqa: BLE001 - every failure is recorded, never raised
+        return RegistrationResult.failure(one_line(exc), time.perf_counter() - start)
 
 
 # --------------------------------------------------------------------------------------
@@ -99,7 +81,7 @@ def _limit_threads(cpus: list[int] | None, threads: int) -> None:
             pass
 
 
-def _worker_main(conn, cpus: list[int] | None, threads: int) -> None:
+def _worker_main(conn, cpus: list[int] | None, threads: int, timeout_s: float | None) -> None:
     """Worker loop: limit threads, unpickle the registrator, then serve pairs until None."""
     _limit_threads(cpus, threads)
     try:
@@ -114,7 +96,7 @@ def _worker_main(conn, cpus: list[int] | None, threads: int) -> None:
             exc_bytes = pickle.dumps(exc)
         except Exception:  # noqa: BLE001 - unpicklable exception: send the text only
             exc_bytes = None
-        conn.send(("startup_error", _one_line(exc), traceback.format_exc(), exc_bytes))
+        conn.send(("startup_error", one_line(exc), traceback.format_exc(), exc_bytes))
         return
     conn.send(("ready",))
     while True:
@@ -124,13 +106,7 @@ def _worker_main(conn, cpus: list[int] | None, threads: int) -> None:
             return
         if task is None:
             return
-        index, src, ref = task
-        start = time.perf_counter()
-        try:
-            transform = registrator.register(src, ref)
-            conn.send(("ok", index, np.asarray(transform, dtype=np.float64), time.perf_counter() - start))
-        except BaseException as exc:  # noqa: BLE001 - every failure is recorded, never raised
-            conn.send(("error", index, _one_line(exc), time.perf_counter() - start))
+        conn.send(("done", _register_one(registrator, *task, timeout_s)))
 
 
 # --------------------------------------------------------------------------------------
@@ -141,8 +117,8 @@ def _worker_main(conn, cpus: list[int] | None, threads: int) -> None:
 class _Slot:
     """One worker process and what it is doing."""
 
-    def __init__(self, ctx, payload: bytes, cpus: list[int] | None, threads: int) -> None:
-        self.ctx, self.payload, self.cpus, self.threads = ctx, payload, cpus, threads
+    def __init__(self, ctx, payload: bytes, cpus: list[int] | None, threads: int, timeout_s: float | None) -> None:
+        self.ctx, self.payload, self.cpus, self.threads, self.timeout_s = ctx, payload, cpus, threads, timeout_s
         self.proc = None
         self.conn = None
         self.ready = False
@@ -152,7 +128,7 @@ class _Slot:
 
     def start(self) -> None:
         parent, child = self.ctx.Pipe(duplex=True)
-        proc = self.ctx.Process(target=_worker_main, args=(child, self.cpus, self.threads), daemon=True)
+        proc = self.ctx.Process(target=_worker_main, args=(child, self.cpus, self.threads, self.timeout_s), daemon=True)
         try:
             proc.start()
         except BaseException:
@@ -168,16 +144,16 @@ class _Slot:
         self.started = time.monotonic()
         self.deadline = self.started + _STARTUP_TIMEOUT_S
 
-    def assign(self, index: int, src: Any, ref: Any, timeout_s: float | None) -> bool:
+    def assign(self, index: int, src: Any, ref: Any) -> bool:
         """Send a pair; False if the (idle) worker has died meanwhile (it is then reset)."""
         try:
-            self.conn.send((index, src, ref))
+            self.conn.send((src, ref))
         except (BrokenPipeError, ConnectionResetError, EOFError, OSError):
             self.kill()
             return False
         self.task = index
         self.started = time.monotonic()
-        self.deadline = math.inf if timeout_s is None else self.started + timeout_s
+        self.deadline = math.inf if self.timeout_s is None else self.started + self.timeout_s
         return True
 
     def kill(self) -> None:
@@ -251,8 +227,8 @@ def run_pairs(
     *,
     threads_per_worker: int | None = None,
     mp_context: str = "spawn",
-) -> list[PairResult]:
-    """Register every ``(src, ref)`` pair; return one PairResult per pair, in input order.
+) -> list[RegistrationResult]:
+    """Register every ``(src, ref)`` pair; return one RegistrationResult per pair, in input order.
 
     Args:
         registrator: any :class:`~baselines.base.Registrator` (must be picklable for workers > 0).
@@ -290,18 +266,18 @@ def run_pairs(
     except Exception as exc:  # noqa: BLE001 - explain what is needed
         raise TypeError(
             f"{desc}: the registrator must be picklable to run in worker processes "
-            f"(keep native handles out of its attributes, or pass workers=0): {_one_line(exc)}"
+            f"(keep native handles out of its attributes, or pass workers=0): {one_line(exc)}"
         ) from exc
     ctx = multiprocessing.get_context(mp_context)
-    results: list[PairResult | None] = [None] * n
+    results: list[RegistrationResult | None] = [None] * n
     todo = list(range(n - 1, -1, -1))  # a stack: pop() yields 0, 1, 2, ...
-    slots = [_Slot(ctx, payload, sorted(set(c)), threads) for c in cpu_sets]
+    slots = [_Slot(ctx, payload, sorted(set(c)), threads, timeout_s) for c in cpu_sets]
     bar = _progress_bar(n, progress, desc)
     n_failed = 0
 
-    def record(result: PairResult) -> None:
+    def record(index: int, result: RegistrationResult) -> None:
         nonlocal n_failed
-        results[result.index] = result
+        results[index] = result
         n_failed += result.failed
         bar.update(1)
         if n_failed:
@@ -318,7 +294,7 @@ def run_pairs(
                 if slot.ready and slot.task is None and todo:
                     index = todo.pop()
                     src, ref = pairs[index]
-                    if not slot.assign(index, src, ref, timeout_s):
+                    if not slot.assign(index, src, ref):
                         todo.append(index)  # the worker died while idle: retry on a fresh one
             live = [s for s in slots if s.conn is not None and (not s.ready or s.task is not None)]
             if not live:  # pragma: no cover - defensive: nothing running yet results missing
@@ -339,7 +315,7 @@ def run_pairs(
                             "guard the script's entry point with `if __name__ == '__main__':` "
                             "(worker processes are started with multiprocessing's 'spawn')"
                         ) from None
-                    record(PairResult(slot.task, np.eye(4), time.monotonic() - slot.started, True, reason))
+                    record(slot.task, RegistrationResult.failure(reason, time.monotonic() - slot.started))
                     slot.kill()
                     continue
                 kind = msg[0]
@@ -348,14 +324,9 @@ def run_pairs(
                     slot.deadline = math.inf
                 elif kind == "startup_error":
                     _raise_startup_error(desc, *msg[1:])
-                elif kind == "ok":
-                    _, index, transform, seconds = msg
+                else:  # "done"
+                    record(slot.task, msg[1])
                     slot.task, slot.deadline = None, math.inf  # idle: no deadline until its next pair
-                    record(_finish(index, transform, seconds, timeout_s))
-                else:  # "error"
-                    _, index, reason, seconds = msg
-                    slot.task, slot.deadline = None, math.inf
-                    record(PairResult(index, np.eye(4), seconds, True, reason))
             # kill workers past their deadline
             now = time.monotonic()
             for slot in slots:
@@ -364,9 +335,8 @@ def run_pairs(
                 if slot.task is None:
                     raise RuntimeError(f"{desc}: worker did not start within {_STARTUP_TIMEOUT_S:g} s")
                 elapsed = now - slot.started
-                record(
-                    PairResult(slot.task, np.eye(4), elapsed, True, f"timed out after {timeout_s:g} s (worker killed)")
-                )
+                reason = f"timed out after {timeout_s:g} s (worker killed)"
+                record(slot.task, RegistrationResult.failure(reason, elapsed, timed_out=True))
                 slot.kill()
     finally:
         for slot in slots:  # let all workers exit in parallel, then reap them
@@ -379,17 +349,11 @@ def run_pairs(
 
 def _run_serial(
     registrator: Registrator, pairs: list[tuple[Any, Any]], timeout_s: float | None, progress: bool, desc: str
-) -> list[PairResult]:
+) -> list[RegistrationResult]:
     registrator.setup()
     results = []
     with _progress_bar(len(pairs), progress, desc) as bar:
-        for index, (src, ref) in enumerate(pairs):
-            start = time.perf_counter()
-            try:
-                transform = registrator.register(src, ref)
-            except Exception as exc:  # noqa: BLE001 - every failure is recorded, never raised
-                results.append(PairResult(index, np.eye(4), time.perf_counter() - start, True, _one_line(exc)))
-            else:
-                results.append(_finish(index, transform, time.perf_counter() - start, timeout_s))
+        for src, ref in pairs:
+            results.append(_register_one(registrator, src, ref, timeout_s))
             bar.update(1)
     return results

@@ -13,7 +13,8 @@ before writing ``config_resolved.yaml`` (e.g. on an invalid value) is described 
 ``multirun.yaml`` the number of jobs the sweep should have produced is checked as well.
 
 Columns of the tidy frame (``results.parquet`` / ``results.csv``): ``sweep``, ``job``,
-``method`` (the ``variant`` label if the config has one, e.g. ``B+M``, else the network class),
+``method`` (the ``variant`` label if the config has one, e.g. ``B+M``, else the display name of the
+network's method in :mod:`baselines.methods`, else the network class),
 ``network``, ``experiment`` (named by its data: ``unseen_shapes``, ``unseen_categories``, with
 ``_noise`` appended when σ > 0; other experiments keep their task name), ``dataset``,
 ``sampling``, ``partial``, ``noise_sigma``, ``overlap_ratio``, ``num_iters``,
@@ -36,6 +37,8 @@ from typing import Any
 import pandas as pd
 import yaml
 from omegaconf import DictConfig, OmegaConf
+
+from baselines.methods import method_of_network
 
 MARKERS = (".hydra/overrides.yaml", "config_resolved.yaml", "metrics.json", "failure.json")
 STANDARD_COLUMNS: dict[str, str] = {
@@ -194,7 +197,8 @@ def _describe(job: dict[str, Any], cfg: DictConfig | None) -> dict[str, Any]:
         row["task"] = context.get("task")
     target = _select(cfg, "model.network._target_")
     row["network"] = str(target).rsplit(".", 1)[-1] if target else None
-    row["method"] = row["variant"] or row["network"]
+    method = method_of_network(str(target)) if target else None
+    row["method"] = row["variant"] or (method.display if method else row["network"])
     row["experiment"] = experiment_name(cfg)
     return row
 

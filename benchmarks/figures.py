@@ -37,6 +37,7 @@ import torch  # noqa: E402
 
 from baselines import get_registrator, resolve_registrator, run_pairs  # noqa: E402
 from baselines.base import Registrator  # noqa: E402
+from baselines.methods import display_name  # noqa: E402
 from src.data.scan_pairs import ScanPairDataset  # noqa: E402
 from src.data.scans import apply_transform  # noqa: E402
 from src.errors import ConfigError, UserError  # noqa: E402
@@ -234,7 +235,6 @@ def _chosen_pairs(args: argparse.Namespace, test_set) -> dict[int, str]:
         return dict.fromkeys(indices, "")
     if args.grid is None:
         raise ConfigError("choose the pairs: --pairs i,j,... or --grid DIR (with --pick and --by)")
-    from benchmarks.grid import display_name
     from benchmarks.plots import grid_pairs
 
     rows = grid_pairs(args.grid, test_set)
@@ -247,7 +247,7 @@ def _chosen_pairs(args: argparse.Namespace, test_set) -> dict[int, str]:
 
 def run(args: argparse.Namespace) -> list[str]:
     """Draw the chosen pairs into ``args.out``; the panel titles."""
-    from benchmarks.grid import build_test_set, display_name
+    from benchmarks.grid import build_test_set
 
     view = tuple(float(v) for v in args.view.split(","))
     if len(view) != 2:

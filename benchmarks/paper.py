@@ -23,6 +23,7 @@ from typing import Any
 
 import pandas as pd
 
+from baselines.methods import find_method, spelling
 from src.paths import shared_path
 
 DEFAULT_PAPER_DIR = shared_path("reference", "paper_tables")
@@ -64,15 +65,15 @@ _LAMBDA = re.compile(r"^\s*(?:\$\\lambda\$|\\lambda|λ|lambda)\s*=\s*([-+0-9.eE]
 
 
 def method_key(name: Any) -> str:
-    """Matching key of a method name: ``Ours`` = ``OMNet``; ``$\\lambda$=2.0``, ``λ=2`` and
-    ``lambda=2.0`` are one key; case, spaces and punctuation around ``Top-k, k=100`` ignored."""
+    """Matching key of a method name: a registered method's key for any of its names (``Ours`` = ``OMNet``
+    = ``omnet``, :func:`baselines.methods.find_method`); ``$\\lambda$=2.0``, ``λ=2`` and ``lambda=2.0``
+    are one key; other names without case, spaces and punctuation (``Top-k, k=100`` = ``top-k k=100``)."""
     text = str(name).strip()
     match = _LAMBDA.match(text)
     if match:
         return f"lambda={float(match.group(1)):g}"
-    if text.lower() in ("ours", "omnet"):
-        return "omnet"
-    return re.sub(r"[\s,_\-]+", "", text.lower())
+    method = find_method(text)
+    return method.key if method else spelling(text)
 
 
 def load_paper_tables(paper_dir: str | Path | None = None) -> pd.DataFrame:

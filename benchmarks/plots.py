@@ -37,6 +37,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
+from baselines.methods import display_name  # noqa: E402
 from benchmarks.paper import attach_paper, canonical_experiment, default_paper_dir, load_paper_tables  # noqa: E402
 from benchmarks.tables import read_inputs  # noqa: E402
 from src.errors import UserError  # noqa: E402
@@ -206,7 +207,7 @@ def scan_pair_rows(grid_dir: Path, overrides: Sequence[str] = ()) -> tuple[pd.Da
     """The per-pair rows of a ``+benchmark=scan_pairs`` grid with each pair's ``overlap``, ``source`` and
     ``reference`` scans and the method's display ``label``; and the scan sets' names. The test set is
     rebuilt from ``+exp=scan_pairs`` and ``overrides`` (the grid's data overrides)."""
-    from benchmarks.grid import build_test_set, display_name
+    from benchmarks.grid import build_test_set
 
     test_set = build_test_set(SCAN_PAIRS, "ts", "prnet", None, overrides)
     rows = grid_pairs(grid_dir, test_set)

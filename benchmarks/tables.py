@@ -8,7 +8,8 @@ value`` and optionally ``source`` (several inputs are concatenated), or multirun
 the fly with :mod:`benchmarks.collect`). Cells with several rows (seeds, repeated runs) show their
 mean. A method given by several ``source`` values gets one row per source.
 
-Layouts (rows: methods; best of ours per column in bold, second underlined):
+Layouts (rows: methods in the paper's order, :func:`baselines.methods.paper_rank`; best of ours per
+column in bold, second underlined):
 
 * ``table1`` — Table 1: one block per experiment (unseen shapes, unseen categories, Gaussian
   noise, ...), an OS and a TS column per metric.
@@ -35,6 +36,7 @@ from typing import Sequence
 
 import pandas as pd
 
+from baselines.methods import paper_rank
 from benchmarks.paper import (
     EXPERIMENT_LABELS,
     attach_paper,
@@ -49,8 +51,6 @@ HIGHER_IS_BETTER = ("success(1deg,0.01)", "success(5deg,0.05)")
 REQUIRED = ("method", "experiment", "sampling", "metric", "value")
 LAYOUTS = ("table1", "table2", "table3")
 EXPERIMENT_ORDER = ("unseen_shapes", "unseen_categories", "unseen_shapes_noise", "unseen_categories_noise")
-# The paper's row order (names only); unknown methods go before OMNet, alphabetically.
-METHOD_ORDER = ("ICP", "Go-ICP", "Symmetric ICP", "FGR", "PointNetLK", "DCP", "RPMNet", "PRNet", "FMR", "IDAM", "DeepGMR")
 ABLATION_ORDER = ("B", "B+M", "B+M+ML", "B+M+ML+F", "B+M+ML+F+C")
 MISSING = "--"
 
@@ -154,13 +154,9 @@ def aggregate(frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def _method_sort_key(name: str) -> tuple:
-    base = name.split(" (")[0]
-    if method_key(base) == "omnet":
-        return (2, 0, name)
-    keys = [method_key(m) for m in METHOD_ORDER]
-    if method_key(base) in keys:
-        return (0, keys.index(method_key(base)), name)
-    return (1, 0, name.lower())
+    """The paper's row order (:func:`baselines.methods.paper_rank`; a label's `` (...)`` suffix aside):
+    its baselines, then methods it does not have (alphabetically), then OMNet."""
+    return (*paper_rank(name.split(" (")[0]), name.lower())
 
 
 def table3_group(name: str) -> tuple[int, float, str]:

@@ -1,11 +1,14 @@
 """User-facing errors: one clear line naming the cause and the fix.
 
-Entry points (``src.train``, ``src.eval``, ``src.data.prepare``, benchmarks) catch
-:class:`UserError` and print ``error: <message>`` instead of a traceback.
+Every entry point turns a :class:`UserError` into ``error: <message>`` on stderr and exit status 2
+instead of a traceback, through :func:`exit_code_of`: argparse commands (``src.data.prepare``,
+benchmarks) return its status, Hydra apps (``src.train``, ``src.eval``, ``benchmarks.grid``) wrap
+their task function in :func:`exit_on_user_error`.
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -56,3 +59,16 @@ def exit_code_of(action: Callable[[], Any]) -> int:
         print(f"error: {user_error}", file=sys.stderr)
         return 2
     return 0
+
+
+def exit_on_user_error(task: Callable[..., Any]) -> Callable[..., None]:
+    """A Hydra task function run through :func:`exit_code_of`: it exits with status 2 (after the
+    ``error:`` line) for a UserError."""
+
+    @functools.wraps(task)
+    def wrapper(*args: Any, **kwargs: Any) -> None:
+        status = exit_code_of(lambda: task(*args, **kwargs))
+        if status:
+            sys.exit(status)
+
+    return wrapper

@@ -13,24 +13,18 @@ settings come from the weights' registry entry; the metric convention from the e
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-from src.config import register_resolvers
 from src.checkpoint_io import check_checkpoint
+from src.config import register_resolvers
 from src.errors import ConfigError
+from src.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
-from src.runtime import (
-    build_trainer,
-    exit_on_user_error,
-    global_rank,
-    record_failures,
-    report_test_metrics,
-    save_resolved_config,
-)
+from src.reporting import report_test_metrics, save_resolved_config
+from src.trainer import build_trainer
 
 register_resolvers()
 log = logging.getLogger(__name__)
@@ -68,10 +62,8 @@ def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
 
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:
-    output_dir = Path(cfg.output_dir)
     module, ckpt_path = load_module(cfg)
-    if global_rank() == 0:
-        save_resolved_config(cfg, output_dir)
+    save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
     trainer = build_trainer(cfg, with_checkpoints=False)
     trainer.test(module, datamodule=datamodule)
@@ -80,12 +72,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
-@exit_on_user_error
-@record_failures
-def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
-
+main = job_main(evaluate)
 
 if __name__ == "__main__":
     main()

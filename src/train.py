@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from pathlib import Path
 
 import hydra
 import lightning as L
@@ -29,14 +28,9 @@ from omegaconf import DictConfig
 from src.checkpoint_io import check_checkpoint
 from src.config import register_resolvers
 from src.errors import ConfigError
-from src.runtime import (
-    build_trainer,
-    exit_on_user_error,
-    global_rank,
-    record_failures,
-    report_test_metrics,
-    save_resolved_config,
-)
+from src.failures import job_main
+from src.reporting import report_test_metrics, save_resolved_config
+from src.trainer import build_trainer
 
 register_resolvers()
 # The datamodule, not the loader, carries the mid-epoch data position (RegistrationDataModule.state_dict).
@@ -89,11 +83,9 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
-    output_dir = Path(cfg.output_dir)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True)
-    if global_rank() == 0:
-        save_resolved_config(cfg, output_dir)
+    save_resolved_config(cfg)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = build_module(cfg.model)
@@ -113,12 +105,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
-@exit_on_user_error
-@record_failures
-def main(cfg: DictConfig) -> None:
-    train(cfg)
-
+main = job_main(train)
 
 if __name__ == "__main__":
     main()

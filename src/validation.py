@@ -1,7 +1,7 @@
 """One schema check of a composed config: types, ranges and choices of the data and model fields.
 
 :func:`validate_config` runs before a job touches anything (``src.train`` and ``src.eval`` through
-:func:`src.runtime.record_failures`, ``benchmarks.grid`` for each experiment it composes), so a
+:func:`src.failures.record_failures`, ``benchmarks.grid`` for each experiment it composes), so a
 value such as ``data.pair.noise_sigma=-1`` or ``data.batch_size=abc`` stops with one
 :class:`~src.errors.ConfigError` line naming the key, the rule and the value, instead of running
 with a silently different setting or failing deep inside with a traceback.

@@ -4,7 +4,7 @@ Run once (CPU); tests/test_published_weights.py compares our networks against th
 authors' code is read from checkouts outside the repository (never copied into it), e.g.
 
     for r in WangYueFt+dcp vinits5+learning3d Lilac-Lee+PointNetLK_Revisited; do mkdir -p /tmp/authors/$r; done
-    git -C /work/.mirror/WangYueFt+dcp/repo show HEAD:model.py > /tmp/authors/WangYueFt+dcp/model.py   # + util.py
+    git -C <a clone of WangYueFt/dcp> show HEAD:model.py > /tmp/authors/WangYueFt+dcp/model.py   # + util.py
     # learning3d: models/{pointnet,pointnetlk,pooling}.py, ops/{data_utils,se3,so3,sinc,invmat}.py
     # PointNetLK_Revisited: model.py, utils.py
     python tests/make_published_fixtures.py --dcp /tmp/authors/WangYueFt+dcp \\

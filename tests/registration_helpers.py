@@ -1,8 +1,39 @@
-"""Small batches and checks shared by the network tests."""
+"""Helpers shared by the tests: small batches and checks for the network tests; configs of the
+entry points on tiny synthetic data; runs killed and resumed."""
 
+from pathlib import Path
+
+import lightning as L
+import pytest
 import torch
+from hydra import compose, initialize_config_dir
 
+from src.config import register_resolvers
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+#: Overrides of a run on tiny synthetic data (14 train shapes at batch 2), a tiny network, on the CPU.
+TINY = [
+    "data=synthetic",
+    "data.build.num_train_per_category=2",
+    "data.build.num_test_per_category=1",
+    "data.build.num_samplings=3",
+    "data.batch_size=2",
+    "data.eval_batch_size=2",
+    "data.num_workers=0",
+    "data.pin_memory=false",
+    "model_scale=0.0625",
+    "trainer.accelerator=cpu",
+    "trainer.enable_progress_bar=false",
+]
+# 7 batches an epoch; validation every 2 steps. last.ckpt is written after every step on train-batch
+# end (the time-based checkpoint's code path).
+RESUME_RUN = ["+exp=unseen_shapes", "test_after_fit=false", "trainer.val_check_interval=2",
+              "trainer.check_val_every_n_epoch=null", "trainer.limit_val_batches=1",
+              "callbacks.periodic_checkpoint.train_time_interval=null",
+              "+callbacks.periodic_checkpoint.every_n_train_steps=1", "model.lr=1e-2"]
+RESUME_STEPS = 9
+register_resolvers()
 
 
 def _random_transforms(b: int, g: torch.Generator) -> torch.Tensor:
@@ -93,3 +124,57 @@ def seeded_losses_before_after(model: torch.nn.Module, batch, steps: int, lr: fl
     with torch.no_grad():
         after = sum(loss_at(s).item() for s in range(3))
     return before, after
+
+
+# --- configs of the entry points -------------------------------------------------------------------
+
+
+def compose_config(*overrides: str, config_name: str = "config", hydra_cfg: bool = False):
+    """``conf/<config_name>.yaml`` composed with ``overrides`` (and Hydra's own node with ``hydra_cfg``)."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name, overrides=list(overrides), return_hydra_config=hydra_cfg)
+
+
+def tiny_config(tmp_path: Path, *overrides: str):
+    """A :data:`TINY` run with its cache in ``tmp_path/cache`` and its output in ``tmp_path/run``."""
+    return compose_config(*TINY, f"data.cache_root={tmp_path / 'cache'}", f"output_dir={tmp_path / 'run'}", *overrides)
+
+
+# --- runs killed and resumed -----------------------------------------------------------------------
+
+
+class KillAt(L.Callback):
+    """Raises at the start of training step ``step``, like a process killed there (a time limit)."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
+        if trainer.global_step == self.step:
+            raise RuntimeError(f"killed at step {self.step}")
+
+
+def last_weights(run_dir: Path) -> dict[str, torch.Tensor]:
+    return torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+
+
+def killed_and_resumed(tmp_path: Path, run_dir: Path, stop: int, *overrides: str):
+    """Train a :data:`TINY` run into ``run_dir``, killed at step ``stop``, then resume it from its
+    ``last.ckpt``; returns the weights at the kill and at the end."""
+    from src.train import train
+
+    kill = [f"+callbacks.kill._target_={__name__}.KillAt", f"+callbacks.kill.step={stop}"]
+    with pytest.raises(RuntimeError, match=f"killed at step {stop}"):
+        train(tiny_config(tmp_path, *overrides, *kill, f"output_dir={run_dir}"))
+    at_stop = last_weights(run_dir)
+    train(tiny_config(tmp_path, *overrides, f"output_dir={run_dir}", f"ckpt_path={run_dir / 'checkpoints' / 'last.ckpt'}"))
+    return at_stop, last_weights(run_dir)
+
+
+def assert_same_weights(got: dict[str, torch.Tensor], expected: dict[str, torch.Tensor],
+                        at_stop: dict[str, torch.Tensor]) -> None:
+    """The resumed run's weights equal the uninterrupted run's exactly, and differ from those at the kill."""
+    assert got.keys() == expected.keys()
+    changed = [k for k in got if not torch.equal(got[k], expected[k])]
+    assert not changed, f"resumed weights differ from the uninterrupted run in {changed[:5]}"
+    assert any(not torch.equal(got[k], v) for k, v in at_stop.items())  # it did train further

@@ -12,27 +12,19 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from test_entrypoints import TINY
+from registration_helpers import CONF, TINY, compose_config
 
 import src.eval
 import src.train
-from src.config import register_resolvers
 from src.errors import CheckpointError, ConfigError
 from src.files import remove_stale_temporaries, write_atomic
-from src.runtime import build_trainer
+from src.models.base import check_network
 from src.train import train
+from src.trainer import build_trainer
 from src.validation import validate_config
 
-ROOT = Path(__file__).resolve().parents[1]
-CONF = str(ROOT / "conf")
+ROOT = CONF.parent
 SHIPPED = ROOT / "checkpoints" / "omnet_unseen_categories_synthetic_ts_prnet.ckpt"
-register_resolvers()
-
-
-def _compose(*overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +33,7 @@ def cache(tmp_path_factory) -> str:
 
 
 def _tiny(cache: str, tmp_path: Path, *overrides: str):
-    return _compose(*TINY, cache, f"output_dir={tmp_path / 'run'}", "+exp=unseen_shapes", *overrides)
+    return compose_config(*TINY, cache, f"output_dir={tmp_path / 'run'}", "+exp=unseen_shapes", *overrides)
 
 
 # --- config values ---------------------------------------------------------------------------------
@@ -72,7 +64,7 @@ def _tiny(cache: str, tmp_path: Path, *overrides: str):
 ])
 def test_invalid_values_are_refused_at_composition(override, message):
     with pytest.raises(ConfigError) as info:
-        validate_config(_compose(override))
+        validate_config(compose_config(override))
     assert str(info.value) == message
 
 
@@ -80,8 +72,8 @@ def test_every_shipped_config_is_valid_and_unknown_keys_pass():
     models = sorted(Path(p).stem for p in glob.glob(f"{CONF}/model/*.yaml"))
     experiments = sorted(Path(p).stem for p in glob.glob(f"{CONF}/exp/*.yaml"))
     for overrides in [[f"model={m}", "+exp=scan_pairs"] for m in models] + [[f"+exp={e}"] for e in experiments]:
-        validate_config(_compose(*overrides))
-    validate_config(_compose("+data.a_new_switch=abc", "+model.recipe_note=-1", "partial=rpmnet", "sampling=os"))
+        validate_config(compose_config(*overrides))
+    validate_config(compose_config("+data.a_new_switch=abc", "+model.recipe_note=-1", "partial=rpmnet", "sampling=os"))
 
 
 @pytest.mark.parametrize("entry, override, message", [
@@ -92,7 +84,7 @@ def test_every_shipped_config_is_valid_and_unknown_keys_pass():
 ])
 def test_entry_points_stop_with_one_line(entry, override, message, tmp_path, capsys, cache):
     """``main`` below Hydra's decorator: exit_on_user_error(record_failures(...)), as the command runs it."""
-    cfg = _compose(*TINY, cache, override, f"output_dir={tmp_path}")
+    cfg = compose_config(*TINY, cache, override, f"output_dir={tmp_path}")
     with pytest.raises(SystemExit) as exit_info:
         entry.main.__wrapped__(cfg)
     assert exit_info.value.code == 2
@@ -104,6 +96,17 @@ def test_entry_points_stop_with_one_line(entry, override, message, tmp_path, cap
 def test_a_network_rejecting_its_config_is_one_line(tmp_path, cache):
     with pytest.raises(ConfigError, match=r"^model: src.models.omnet.OMNet rejects its config: mask_mode must be one of"):
         train(_tiny(cache, tmp_path, "model.network.mask_mode=foo"))
+
+
+def test_a_network_without_the_two_methods_is_one_line():
+    with pytest.raises(ConfigError, match=r"^model.network: torch.nn.Linear is not a registration network: it has no "
+                                          r"loss method \(the two methods"):
+        check_network(torch.nn.Linear(3, 3), "torch.nn.Linear")
+    with pytest.raises(ConfigError, match="it has no forward or loss method"):
+        check_network(object(), "builtins.object")
+    translation = torch.nn.Linear(3, 3)
+    translation.loss = lambda outputs, transform_gt: {"loss": torch.zeros(())}
+    assert check_network(translation, "a.Translation") is translation
 
 
 # --- training that would train nothing --------------------------------------------------------------
@@ -160,7 +163,7 @@ import os, shutil, signal, sys
 import torch
 from hydra import compose, initialize_config_dir
 from src.config import register_resolvers
-from src.runtime import build_trainer
+from src.trainer import build_trainer
 register_resolvers()
 with initialize_config_dir(config_dir=sys.argv[1], version_base="1.3"):
     cfg = compose("config", overrides=["trainer.accelerator=cpu", "output_dir=" + sys.argv[2]])
@@ -176,13 +179,13 @@ def test_a_save_killed_midway_leaves_nothing_behind_after_the_next_start(tmp_pat
     system_tmp, run = tmp_path / "system_tmp", tmp_path / "run"
     system_tmp.mkdir()
     env = {**os.environ, "TMPDIR": str(system_tmp), "OMP_NUM_THREADS": "1"}
-    result = subprocess.run([sys.executable, "-c", _KILLED_SAVE, CONF, str(run)], cwd=ROOT, env=env,
+    result = subprocess.run([sys.executable, "-c", _KILLED_SAVE, str(CONF), str(run)], cwd=ROOT, env=env,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == -signal.SIGKILL, result.stderr[-2000:]
     assert list(system_tmp.iterdir()) == []  # Lightning's writer staged a 2 MB file in the system temp folder
     left = list((run / "checkpoints").iterdir())
     assert len(left) == 1 and left[0].name.startswith(".last.ckpt.") and left[0].name.endswith(".tmp")
-    build_trainer(_compose("trainer.accelerator=cpu", f"output_dir={run}"))  # the next run starts
+    build_trainer(compose_config("trainer.accelerator=cpu", f"output_dir={run}"))  # the next run starts
     assert list((run / "checkpoints").iterdir()) == []
 
 

@@ -205,3 +205,36 @@ def test_voxel_down_sample_averages_each_occupied_voxel():
     cloud = l_shape_surface(20000)
     voxel = budget_voxel_size([cloud], 1000)
     assert 700 < len(voxel_down_sample(cloud, voxel)) <= 1000
+
+
+# --- the result object -----------------------------------------------------------------------------
+
+
+def test_register_result_reports_the_transform_time_and_inlier_fit():
+    lattice = np.stack(np.meshgrid(*[np.arange(3) * 0.5] * 3), axis=-1).reshape(-1, 3)
+    src = np.concatenate([lattice, lattice + [10.0, 0.0, 0.0]])  # half of it far from the reference
+    ref = lattice + [0.01, 0.0, 0.0]
+    identity = get_registrator("identity")
+    result = identity.register_result(src, ref)
+    assert np.array_equal(result.transform, identity.register(src, ref)) and np.array_equal(result.transform, np.eye(4))
+    assert not result.failed and not result.timed_out and result.reason == "" and result.seconds >= 0.0
+    assert result.fitness == 0.5 and result.inlier_rmse == pytest.approx(0.01)  # threshold FIT_THRESHOLD = 0.05
+    tight = identity.register_result(src, ref, threshold=0.005)
+    assert (tight.fitness, tight.inlier_rmse) == (0.0, 0.0)
+    unfitted = identity.register_result(src, ref, threshold=None)
+    assert unfitted.fitness is None and unfitted.inlier_rmse is None
+    with pytest.raises(ConfigError, match="threshold must be a distance > 0"):
+        identity.register_result(src, ref, threshold=-1.0)
+
+
+def test_register_result_records_failures_and_raises_on_bad_input():
+    src, ref = make_pair(euler_transform((0, 0, 0), (0.1, 0.0, 0.0)), 40, seed=0)
+    raised = ToyRegistrator(raise_on=(40,)).register_result(src, ref)
+    assert raised.failed and not raised.timed_out and raised.reason == "ValueError: toy failure on a 40-point cloud"
+    assert np.array_equal(raised.transform, np.eye(4)) and raised.fitness is None
+    garbage = ToyRegistrator(scale_on=(40,)).register_result(src, ref)
+    assert garbage.failed and garbage.reason.startswith("non-rigid estimate: estimate's rotation is not orthonormal")
+    slow = ToyRegistrator(sleep_s=0.05).register_result(src, ref, timeout_s=0.01)
+    assert slow.failed and slow.timed_out and slow.reason.startswith("timed out: took")
+    with pytest.raises(PointCloudError, match="src: needs at least 3 points"):
+        ToyRegistrator().register_result(src[:2], ref)

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from baselines import get_registrator, run_pairs
-from baselines.runner import PairResult
+from baselines import RegistrationResult, get_registrator, run_pairs
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface
 from src.errors import CheckpointError
 
@@ -20,10 +19,10 @@ def _pairs(sizes):
     return pairs
 
 
-def _check_ok(result: PairResult, index: int):
-    assert result.index == index and not result.failed and result.reason == ""
+def _check_ok(result: RegistrationResult, index: int):
+    assert not result.failed and not result.timed_out and result.reason == ""
     np.testing.assert_allclose(result.transform[:3, 3], [index, 0.0, 0.0], atol=1e-9)
-    assert result.seconds >= 0.0
+    assert result.seconds >= 0.0 and result.fitness == 1.0 and result.inlier_rmse < 1e-9  # the toy is exact
 
 
 def test_results_keep_pair_order_with_parallel_workers():
@@ -49,7 +48,7 @@ def test_timeout_crash_exception_and_bad_estimates_are_recorded_not_dropped():
     assert len(results) == len(sizes)
     for i, (result, n) in enumerate(zip(results, sizes)):
         if n in expected:
-            assert result.failed and result.index == i, result
+            assert result.failed and result.timed_out == (n == 31) and result.fitness is None, result
             assert result.reason.startswith(expected[n]), result.reason
             assert "\n" not in result.reason
             np.testing.assert_array_equal(result.transform, np.eye(4))
@@ -82,7 +81,7 @@ def test_serial_mode_flags_slow_pairs_and_exceptions():
     assert [r.failed for r in results] == [False, False, True]
     assert results[2].reason.startswith("ValueError: toy failure")
     slow = run_pairs(ToyRegistrator(sleep_s=0.05), pairs[:1], workers=0, timeout_s=0.01, progress=False)
-    assert slow[0].failed and "timed out" in slow[0].reason
+    assert slow[0].failed and slow[0].timed_out and "timed out" in slow[0].reason
 
 
 def test_empty_input_and_argument_checks():

@@ -4,56 +4,31 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from registration_helpers import tiny_config
 
-from src.config import register_resolvers
+from src.errors import CheckpointError
 from src.eval import evaluate
 from src.train import train
-
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
-TINY = [
-    "data=synthetic",
-    "data.build.num_train_per_category=2",
-    "data.build.num_test_per_category=1",
-    "data.build.num_samplings=3",
-    "data.batch_size=2",
-    "data.eval_batch_size=2",
-    "data.num_workers=0",
-    "data.pin_memory=false",
-    "model_scale=0.0625",
-    "trainer.accelerator=cpu",
-    "trainer.enable_progress_bar=false",
-]
-register_resolvers()
-
-
-def _cfg(tmp_path: Path, *overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(
-            "config",
-            overrides=[*TINY, f"data.cache_root={tmp_path / 'cache'}", f"output_dir={tmp_path / 'run'}", *overrides],
-        )
 
 
 @pytest.mark.parametrize("exp", ["unseen_shapes", "unseen_categories", "gaussian_noise"])
 def test_experiment_configs_compose(tmp_path, exp):
-    cfg = _cfg(tmp_path, f"+exp={exp}")
+    cfg = tiny_config(tmp_path, f"+exp={exp}")
     assert cfg.task_name == exp and cfg.data.dataset == "synthetic"
     assert cfg.model.euler_seq == "zyx"
     assert cfg.data.splits.test.categories == ("half2" if exp == "unseen_categories" else "half1")
 
 
 def test_rpmnet_manner_switches_the_euler_convention(tmp_path):
-    cfg = _cfg(tmp_path, "+exp=unseen_categories", "partial=rpmnet", "sampling=os")
+    cfg = tiny_config(tmp_path, "+exp=unseen_categories", "partial=rpmnet", "sampling=os")
     assert cfg.model.euler_seq == "xyz" and cfg.data.pair.partial == "rpmnet" and cfg.data.pair.sampling == "os"
 
 
 def test_fast_dev_run_trains_tests_and_evaluates(tmp_path):
-    cfg = _cfg(tmp_path, "+exp=unseen_categories", "trainer.fast_dev_run=true")
+    cfg = tiny_config(tmp_path, "+exp=unseen_categories", "trainer.fast_dev_run=true")
     metrics = train(cfg)
     assert set(metrics) >= {"RMSE(R)", "Error(R)", "Error(t)", "score"}
     saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -62,13 +37,13 @@ def test_fast_dev_run_trains_tests_and_evaluates(tmp_path):
 
 
 def test_train_writes_checkpoint_that_eval_reads(tmp_path):
-    cfg = _cfg(tmp_path, "+exp=unseen_shapes", "trainer.max_steps=2", "trainer.limit_val_batches=1",
-               "trainer.limit_test_batches=1", "trainer.limit_train_batches=2")
+    cfg = tiny_config(tmp_path, "+exp=unseen_shapes", "trainer.max_steps=2", "trainer.limit_val_batches=1",
+                      "trainer.limit_test_batches=1", "trainer.limit_train_batches=2")
     train(cfg)
     ckpts = sorted((tmp_path / "run" / "checkpoints").glob("best-*.ckpt"))
     assert ckpts, "no best checkpoint written"
-    eval_cfg = _cfg(tmp_path, "+exp=unseen_shapes", f"ckpt_path={ckpts[0]}", "trainer.limit_test_batches=1",
-                    f"output_dir={tmp_path / 'eval'}")
+    eval_cfg = tiny_config(tmp_path, "+exp=unseen_shapes", f"ckpt_path={ckpts[0]}", "trainer.limit_test_batches=1",
+                           f"output_dir={tmp_path / 'eval'}")
     metrics = evaluate(eval_cfg)
     assert metrics["Error(R)"] >= 0 and (tmp_path / "eval" / "metrics.csv").is_file()
 
@@ -95,15 +70,13 @@ def test_unknown_experiment_and_key_are_reported(tmp_path):
 
 
 def test_eval_rejects_missing_and_foreign_checkpoints(tmp_path):
-    from src.errors import CheckpointError
-
     with pytest.raises(CheckpointError, match="does not exist"):
-        evaluate(_cfg(tmp_path, f"ckpt_path={tmp_path / 'none.ckpt'}"))
+        evaluate(tiny_config(tmp_path, f"ckpt_path={tmp_path / 'none.ckpt'}"))
     foreign = tmp_path / "foreign.ckpt"
     torch.save({"state_dict": {}, "hyper_parameters": {"network": {"_target_": "baselines.learned.dcp.DCP"}}}, foreign)
     with pytest.raises(CheckpointError, match="holds a baselines.learned.dcp.DCP network"):
-        evaluate(_cfg(tmp_path, f"ckpt_path={foreign}"))
+        evaluate(tiny_config(tmp_path, f"ckpt_path={foreign}"))
     junk = tmp_path / "junk.ckpt"
     junk.write_text("not a checkpoint")
     with pytest.raises(CheckpointError, match="not a readable PyTorch checkpoint"):
-        evaluate(_cfg(tmp_path, f"ckpt_path={junk}"))
+        evaluate(tiny_config(tmp_path, f"ckpt_path={junk}"))

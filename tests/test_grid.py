@@ -11,6 +11,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import benchmarks.grid as grid
+import benchmarks.grid_run as grid_run
 from baselines import get_registrator, register_registrator
 from baselines.testing import ToyRegistrator
 from src.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
@@ -123,8 +124,8 @@ def test_rerun_reuses_finished_cells(tmp_path, cache_root, monkeypatch):
     mtimes = {p: p.stat().st_mtime_ns for p in cell_files}
 
     calls = []
-    real_register = grid.register_cells
-    monkeypatch.setattr(grid, "register_cells", lambda cells, c: calls.extend(x.key for x in cells) or real_register(cells, c))
+    real_register = grid_run.register_cells
+    monkeypatch.setattr(grid_run, "register_cells", lambda cells, c: calls.extend(x.key for x in cells) or real_register(cells, c))
     second = grid.run_grid(cfg)
     assert (second.computed, second.reused) == (0, 1) and calls == []
     assert {p: p.stat().st_mtime_ns for p in cell_files} == mtimes
@@ -206,6 +207,6 @@ def test_pending_cells_share_one_call_per_method_up_to_pairs_per_call():
     a, b = object(), object()
     cells = [grid.Cell("icp", None, a, n, {}, f"{i}", Path(".")) for i, n in enumerate((50, 50, 50))]
     cells.insert(1, grid.Cell("fgr", None, b, 10, {}, "x", Path(".")))
-    calls = grid._calls(cells, 120)
+    calls = grid_run._calls(cells, 120)
     assert [[c.digest for c in call] for call in calls] == [["0", "1"], ["2"], ["x"]]
-    assert len(grid._calls(cells, None)) == 2
+    assert len(grid_run._calls(cells, None)) == 2

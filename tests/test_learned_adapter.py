@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 from torch.utils.data import DataLoader
 
-from baselines import available_registrators, get_registrator, resolve_registrator
-from baselines.learned.adapter import LEARNED_METHODS, LearnedRegistrator, run_batches
+from baselines import get_registrator
+from baselines.learned.adapter import LearnedRegistrator, run_batches
 from baselines.testing import euler_transform, l_shape_surface
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
@@ -42,14 +41,6 @@ def omnet_ckpt(tmp_path_factory) -> Path:
     return path
 
 
-def test_every_learned_method_is_registered_with_its_network():
-    for name, target in LEARNED_METHODS.items():
-        assert name in available_registrators()
-        cls = resolve_registrator(name)
-        assert issubclass(cls, LearnedRegistrator) and cls.needs_training and cls.name == name
-        assert OmegaConf.load(CONF / "model" / f"{name}.yaml").network._target_ == target == cls.network_target
-
-
 def test_checkpoint_round_trip(omnet_ckpt):
     registrator = get_registrator("omnet", checkpoint=str(omnet_ckpt), device="cpu")
     assert registrator.needs_training and registrator.label == "OMNet"
@@ -68,7 +59,7 @@ def test_checkpoint_round_trip(omnet_ckpt):
     assert np.allclose(clone.register_batch(src.numpy(), ref.numpy()), expected, atol=1e-5)
     # run_batches: one result per pair, in order, batched
     results = run_batches(registrator, [(s.numpy(), r.numpy()) for s, r in zip(src, ref)], batch_size=2, progress=False)
-    assert [r.index for r in results] == [0, 1, 2] and not any(r.failed for r in results)
+    assert len(results) == 3 and not any(r.failed for r in results) and all(0 <= r.fitness <= 1 for r in results)
     assert np.allclose(np.stack([r.transform for r in results]), expected, atol=1e-5)
 
 

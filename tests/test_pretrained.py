@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from test_entrypoints import _cfg
+from registration_helpers import tiny_config
 
 from src.errors import CheckpointError
 from src.eval import evaluate
@@ -20,8 +20,8 @@ IDENTITY = {"task": "unseen_shapes", "dataset": "synthetic", "sampling": "ts", "
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("pretrained")
-    train(_cfg(tmp, "+exp=unseen_shapes", "trainer.max_steps=2", "trainer.val_check_interval=1",
-               "trainer.check_val_every_n_epoch=null", "trainer.limit_val_batches=1", "trainer.limit_test_batches=1"))
+    train(tiny_config(tmp, "+exp=unseen_shapes", "trainer.max_steps=2", "trainer.val_check_interval=1",
+                      "trainer.check_val_every_n_epoch=null", "trainer.limit_val_batches=1", "trainer.limit_test_batches=1"))
     return tmp / "run"
 
 
@@ -59,8 +59,8 @@ def test_eval_without_ckpt_path_uses_the_shipped_checkpoint(tmp_path):
     shipped = find_shipped({"task": "unseen_categories", "dataset": "synthetic", "sampling": "ts", "partial": "prnet"})
     card = json.loads(shipped.with_suffix(".json").read_text())
     assert shipped.parent == SHIPPED_DIR and shipped.stat().st_size < 60 * 2**20 and card["file"] == shipped.name
-    metrics = evaluate(_cfg(tmp_path, "+exp=unseen_categories"))
+    metrics = evaluate(tiny_config(tmp_path, "+exp=unseen_categories"))
     saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert saved["checkpoint"] == str(shipped) and saved["metrics"]["Error(R)"] == pytest.approx(metrics["Error(R)"])
     with pytest.raises(CheckpointError, match="no shipped checkpoint for task=gaussian_noise"):
-        evaluate(_cfg(tmp_path, "+exp=gaussian_noise"))
+        evaluate(tiny_config(tmp_path, "+exp=gaussian_noise"))

@@ -10,22 +10,27 @@ import hydra
 import lightning as L
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from registration_helpers import reload_via_checkpoint
-from test_entrypoints import _cfg
-from test_resume import RUN, TOTAL_STEPS, _assert_same, _weights
+from registration_helpers import (
+    CONF,
+    RESUME_RUN,
+    RESUME_STEPS,
+    assert_same_weights,
+    compose_config,
+    killed_and_resumed,
+    last_weights,
+    reload_via_checkpoint,
+    tiny_config,
+)
 from torch import nn
 from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
 from torch.utils.data import DataLoader
 
-from src.config import register_resolvers
 from src.errors import ConfigError
 from src.models.module import RegistrationModule, WarmupCosine
-from src.runtime import build_trainer
 from src.train import train
+from src.trainer import build_trainer
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
 MODELS = sorted(p.stem for p in (CONF / "model").glob("*.yaml"))
 RECIPES = sorted(p.stem for p in (CONF / "recipe").glob("*.yaml"))
 SCHEDULER_TYPES = {"multistep": MultiStepLR, "plateau": ReduceLROnPlateau, "cosine": LambdaLR, "onecycle": OneCycleLR}
@@ -44,13 +49,11 @@ AUTHORS = {
     "deepgmr": (32, -1, 100, 1e-3, 0.0,
                 {"name": "plateau", "monitor": "val/loss", "factor": 0.5, "patience": 10, "min_lr": 1e-6}, None),
 }
-register_resolvers()
 
 
 def _compose(tmp_path: Path, *overrides: str):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=[f"output_dir={tmp_path / 'run'}", f"data.cache_root={tmp_path / 'cache'}",
-                                            "trainer.accelerator=cpu", "model_scale=0.0625", *overrides])
+    return compose_config(f"output_dir={tmp_path / 'run'}", f"data.cache_root={tmp_path / 'cache'}",
+                          "trainer.accelerator=cpu", "model_scale=0.0625", *overrides)
 
 
 def _assert_scheduler(module: RegistrationModule, spec: dict | None) -> None:
@@ -82,8 +85,7 @@ def test_every_model_config_composes_with_or_without_a_recipe(name, tmp_path):
 
 def _recipe(name: str):
     """``conf/recipe/<name>.yaml`` composed on its own (with the recipes it extends)."""
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(f"recipe/{name}")
+    return compose_config(config_name=f"recipe/{name}")
 
 
 def _leaves(node, prefix: str = ""):
@@ -262,12 +264,7 @@ def test_a_schedule_over_the_run_needs_its_length():
 ], ids=["cosine", "onecycle", "plateau"])
 def test_schedules_resume_bit_for_bit(schedule, tmp_path):
     """Killed after the first epoch's end (step 8 of 9; 7 steps an epoch), resumed from last.ckpt."""
-    run = [*RUN, *schedule, f"trainer.max_steps={TOTAL_STEPS}"]
-    train(_cfg(tmp_path, *run, f"output_dir={tmp_path / 'full'}"))
-    kill = ["+callbacks.kill._target_=test_resume.KillAt", "+callbacks.kill.step=8"]
-    with pytest.raises(RuntimeError, match="killed at step 8"):
-        train(_cfg(tmp_path, *run, *kill, f"output_dir={tmp_path / 'killed'}"))
-    at_stop = _weights(tmp_path / "killed")
-    train(_cfg(tmp_path, *run, f"output_dir={tmp_path / 'killed'}",
-               f"ckpt_path={tmp_path / 'killed' / 'checkpoints' / 'last.ckpt'}"))
-    _assert_same(_weights(tmp_path / "killed"), _weights(tmp_path / "full"), at_stop)
+    run = [*RESUME_RUN, *schedule, f"trainer.max_steps={RESUME_STEPS}"]
+    train(tiny_config(tmp_path, *run, f"output_dir={tmp_path / 'full'}"))
+    at_stop, resumed = killed_and_resumed(tmp_path, tmp_path / "killed", 8, *run)
+    assert_same_weights(resumed, last_weights(tmp_path / "full"), at_stop)

@@ -20,14 +20,14 @@ from pathlib import Path
 import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
-from test_entrypoints import TINY
+from registration_helpers import TINY
 
 from benchmarks.collect import collect, main as collect_main
 from benchmarks.latex_check import check_latex, compile_latex, tabular_rows, tabulars
 from benchmarks.tables import build_table, fmt, to_latex, to_markdown
 from src.config import register_resolvers
 from src.eval import evaluate
-from src.runtime import read_csv_logs
+from src.reporting import read_csv_logs
 from src.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -236,7 +236,7 @@ def test_launcher_configs_compose_and_instantiate():
 
     base = _compose(hydra_cfg=True)
     assert base.hydra.launcher._target_.endswith("BasicLauncher")
-    assert base.hydra.callbacks.failure_summary._target_ == "src.runtime.FailureSummary"
+    assert base.hydra.callbacks.failure_summary._target_ == "src.failures.FailureSummary"
     joblib = _compose("hydra/launcher=joblib", hydra_cfg=True).hydra.launcher
     assert joblib._target_.endswith("JoblibLauncher") and joblib.n_jobs == 2
     slurm = _compose("hydra/launcher=submitit_slurm", "trainer=ddp", "trainer.devices=4", "trainer.num_nodes=2",
@@ -256,7 +256,7 @@ def test_ddp_trainer_config():
 
 
 def test_on_failure_record_and_raise_in_process(tmp_path, monkeypatch):
-    from src.runtime import record_failures, resolve_on_failure
+    from src.failures import record_failures, resolve_on_failure
 
     def boom(cfg):
         raise RuntimeError("kaput")

@@ -135,10 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     rot = np.array([rotation_error_deg(r.transform, t) for r, t in zip(results, truths)])
     tra = np.array([translation_error(r.transform, t) for r, t in zip(results, truths)])
     secs = np.array([r.seconds for r in results])
-    failed = [r for r in results if r.failed]
+    failed = [(i, r) for i, r in enumerate(results) if r.failed]
     print(f"{registrator!r}")
-    for r in failed[:5]:
-        print(f"  pair {r.index}: {r.reason}")
+    for i, r in failed[:5]:
+        print(f"  pair {i}: {r.reason}")
     print(
         f"{len(results)} pairs ({'OS' if args.os else 'TS'}, {'clean' if args.clean else 'noisy'}), "
         f"{len(pairs[0][0])} points: rot err mean {rot.mean():.2f} median {np.median(rot):.2f} deg, "

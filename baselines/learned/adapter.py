@@ -3,28 +3,15 @@
 :class:`LearnedRegistrator` wraps a checkpoint written by ``src.train``
 (:meth:`RegistrationModule.load_from_checkpoint <src.models.module.RegistrationModule>`) and runs
 whole batches through the network with torch, on the GPU when one is available (``device=auto``).
-One subclass per learned method is registered with :func:`~baselines.base.register_registrator`
-under its method name:
+One subclass per learned method of :data:`baselines.methods.METHODS` is generated here (named after
+its network's class, e.g. ``OMNetRegistrator``) and registered under the method's key; the checkpoint
+must hold the method's network (``Method.network``, also ``model.network._target_`` of
+``conf/model/<key>.yaml``). ``python -m baselines`` lists them.
 
-==========================  ==============================================================
-name                        network the checkpoint must hold
-==========================  ==============================================================
-``omnet``                   ``src.models.omnet.OMNet``
-``dcp``                     ``baselines.learned.dcp.DCP``
-``prnet``                   ``baselines.learned.prnet.PRNet``
-``rpmnet``                  ``baselines.learned.rpmnet.RPMNet``
-``idam``                    ``baselines.learned.idam.IDAM``
-``pointnetlk``              ``baselines.learned.pointnetlk.PointNetLK``
-``pointnetlk_revisited``    ``baselines.learned.pointnetlk_revisited.PointNetLKRevisited``
-``fmr``                     ``baselines.learned.fmr.FMR``
-``deepgmr``                 ``baselines.learned.deepgmr.DeepGMR``
-==========================  ==============================================================
-
->>> import baselines.learned.adapter  # registers the names
 >>> from baselines import get_registrator
 >>> omnet = get_registrator("omnet", checkpoint="outputs/.../checkpoints/best-1000.ckpt")
 >>> T = omnet.register_batch(src, ref)          # (B, 4, 4) in one forward pass
->>> results = run_batches(omnet, pairs)         # like baselines.run_pairs, batched
+>>> results = run_batches(omnet, pairs)         # like baselines.run_pairs, batched: RegistrationResults
 
 Each method requires ``checkpoint=PATH`` or ``weights=official:<name>`` (published weights imported
 by :mod:`baselines.learned.published`, e.g. ``get_registrator("dcp", weights="official:dcp_v1")``, or
@@ -40,7 +27,6 @@ estimates of such a network are meaningless.
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -49,38 +35,15 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from baselines.base import (
-    LEARNED_DISPLAY_NAMES,
-    Registrator,
-    RegistratorConfig,
-    check_cloud,
-    register_registrator,
-    transform_problem,
-)
-from baselines.runner import PairResult
+from baselines.base import Registrator, RegistratorConfig, check_cloud
+from baselines.methods import Method, get_method, learned_methods, method_of_network
+from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.errors import CheckpointError, ConfigError
 
-__all__ = [
-    "LEARNED_METHODS",
-    "LearnedConfig",
-    "LearnedRegistrator",
-    "checkpoint_digest",
-    "read_checkpoint_network",
-    "run_batches",
-]
+__all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "read_checkpoint_network", "run_batches"]
 
-#: method name -> ``_target_`` of the network its checkpoints hold (conf/model/<name>.yaml).
-LEARNED_METHODS: dict[str, str] = {
-    "omnet": "src.models.omnet.OMNet",
-    "dcp": "baselines.learned.dcp.DCP",
-    "prnet": "baselines.learned.prnet.PRNet",
-    "rpmnet": "baselines.learned.rpmnet.RPMNet",
-    "idam": "baselines.learned.idam.IDAM",
-    "pointnetlk": "baselines.learned.pointnetlk.PointNetLK",
-    "pointnetlk_revisited": "baselines.learned.pointnetlk_revisited.PointNetLKRevisited",
-    "fmr": "baselines.learned.fmr.FMR",
-    "deepgmr": "baselines.learned.deepgmr.DeepGMR",
-}
+#: method key -> ``_target_`` of its network, derived from :data:`baselines.methods.METHODS` (for benchmarks.speed).
+LEARNED_METHODS: dict[str, str] = {method.key: method.network for method in learned_methods()}
 DEVICES = ("auto", "cpu", "cuda")
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -147,17 +110,10 @@ def read_checkpoint_network(path: str | Path) -> str:
     return str(read_checkpoint(path)["hyper_parameters"]["network"]["_target_"])
 
 
-def checkpoint_digest(path: str | Path) -> str:
-    """sha256 of a checkpoint file (identifies the weights in the grid's cell keys)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def _method_of_target(target: str) -> str | None:
-    return next((m for m, t in LEARNED_METHODS.items() if t == target), None)
+def _used_as(target: str) -> str:
+    """``; use it as method '<key>'`` for a registered network ``target`` (else nothing)."""
+    method = method_of_network(target)
+    return f"; use it as method '{method.key}'" if method else ""
 
 
 class LearnedRegistrator(Registrator):
@@ -196,11 +152,9 @@ class LearnedRegistrator(Registrator):
             )
         found = read_checkpoint_network(cfg.checkpoint)
         if found != self.network_target:
-            other = _method_of_target(found)
-            hint = f"; use it as method '{other}'" if other else ""
             raise CheckpointError(
                 f"checkpoint {cfg.checkpoint} holds a {found} network, not {self.network_target} "
-                f"(method '{self.name}'){hint}"
+                f"(method '{self.name}'){_used_as(found)}"
             )
 
     # -- labels ------------------------------------------------------------------------
@@ -211,16 +165,14 @@ class LearnedRegistrator(Registrator):
 
         target = network_config(resolve(spec).entry)["_target_"]
         if target != self.network_target:
-            other = _method_of_target(target)
             raise CheckpointError(
-                f"{spec} holds a {target} network, not {self.network_target} (method '{self.name}'); "
-                f"use it as method '{other}'"
+                f"{spec} holds a {target} network, not {self.network_target} (method '{self.name}'){_used_as(target)}"
             )
 
     @property
     def label(self) -> str:
         """Display name; ``(untrained)`` marks freshly initialised weights, ``(official:<name>)`` published ones."""
-        base = LEARNED_DISPLAY_NAMES.get(self.name, self.name)
+        base = get_method(self.name).display
         if self.config.fresh_weights:
             return f"{base} (untrained)"
         return f"{base} ({self.config.weights})" if self.config.weights else base
@@ -314,79 +266,67 @@ def _group_by_shape(pairs: Sequence[tuple[np.ndarray, np.ndarray]], batch_size: 
     return sorted(batches, key=lambda b: b[0])
 
 
+def _run_batch(registrator: LearnedRegistrator, pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[RegistrationResult]:
+    """One batch of checked pairs of equal sizes; pair by pair if the batch raises (to isolate the culprit)."""
+    start = time.perf_counter()
+    try:
+        estimates = registrator._register_batch(np.stack([s for s, _ in pairs]), np.stack([r for _, r in pairs]))
+        registrator.synchronize()
+    except Exception:  # noqa: BLE001 - retried pair by pair, each failure recorded
+        return [registrator.register_result(src, ref) for src, ref in pairs]
+    per_pair = (time.perf_counter() - start) / len(pairs)
+    return [RegistrationResult.of_estimate(estimate, per_pair).with_fit(src, ref, FIT_THRESHOLD)
+            for estimate, (src, ref) in zip(estimates, pairs)]
+
+
 def run_batches(
     registrator: LearnedRegistrator,
     pairs: Sequence[tuple[Any, Any]],
     batch_size: int | None = None,
     progress: bool = True,
-) -> list[PairResult]:
-    """Register every pair with a learned method in batches; one PairResult per pair, in order.
+) -> list[RegistrationResult]:
+    """Register every pair with a learned method in batches; one
+    :class:`~baselines.result.RegistrationResult` per pair, in order.
 
     The counterpart of :func:`baselines.runner.run_pairs` for networks: pairs of equal sizes are
     stacked into batches of ``batch_size`` (default: the method's ``batch_size``) and run at once;
     a pair's ``seconds`` is its batch's time divided by the batch size. A batch that raises is
-    retried pair by pair, and a pair that still raises, or whose estimate is not a finite proper
-    rigid transform, gets the identity with ``failed=True`` and a one-line reason. Inputs are
-    checked first (:func:`~baselines.base.check_cloud`: PointCloudError for < 3 points or NaN).
+    retried pair by pair (:meth:`~baselines.base.Registrator.register_result`), and a pair that still
+    raises, or whose estimate is not a finite proper rigid transform, gets the identity with
+    ``failed=True`` and a one-line reason. Inputs are checked first
+    (:func:`~baselines.base.check_cloud`: PointCloudError for < 3 points or NaN).
     """
     from tqdm.auto import tqdm
 
     pairs = [(check_cloud(s, f"pair {i} src"), check_cloud(r, f"pair {i} ref")) for i, (s, r) in enumerate(pairs)]
     batch_size = int(batch_size or registrator.config.batch_size)
-    results: list[PairResult | None] = [None] * len(pairs)
+    results: list[RegistrationResult | None] = [None] * len(pairs)
     if not pairs:
         return []
     registrator.setup()
     with tqdm(total=len(pairs), disable=not progress, desc=registrator.name, unit="pair", dynamic_ncols=True) as bar:
         for batch in _group_by_shape(pairs, batch_size):
-            src = np.stack([pairs[i][0] for i in batch])
-            ref = np.stack([pairs[i][1] for i in batch])
-            start = time.perf_counter()
-            try:
-                estimates = registrator._register_batch(src, ref)
-                registrator.synchronize()
-                per_pair = (time.perf_counter() - start) / len(batch)
-                outcomes = [(estimates[k], per_pair, None) for k in range(len(batch))]
-            except Exception:  # noqa: BLE001 - retry pair by pair to isolate the culprit
-                outcomes = []
-                for i in batch:
-                    one = time.perf_counter()
-                    try:
-                        estimate = registrator._register(pairs[i][0], pairs[i][1])
-                        registrator.synchronize()
-                        outcomes.append((estimate, time.perf_counter() - one, None))
-                    except Exception as exc:  # noqa: BLE001 - recorded, never raised
-                        lines = str(exc).strip().splitlines()
-                        reason = f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
-                        outcomes.append((None, time.perf_counter() - one, reason))
-            for i, (estimate, seconds, reason) in zip(batch, outcomes):
-                problem = reason or transform_problem(estimate)
-                if reason is None and problem is not None:
-                    problem = f"non-rigid estimate: {problem}"
-                if problem is None:
-                    results[i] = PairResult(i, np.asarray(estimate, dtype=np.float64), seconds)
-                else:
-                    results[i] = PairResult(i, np.eye(4), seconds, True, problem)
+            for i, result in zip(batch, _run_batch(registrator, [pairs[i] for i in batch])):
+                results[i] = result
             bar.update(len(batch))
     return results  # type: ignore[return-value]
 
 
-def _make_class(method: str, target: str) -> type[LearnedRegistrator]:
-    class_name = f"{LEARNED_DISPLAY_NAMES[method]}Registrator"
-    cls = type(class_name, (LearnedRegistrator,), {
-        "name": method,
-        "network_target": target,
+def _adapter_class(method: Method) -> type[LearnedRegistrator]:
+    """The Registrator class of a learned method, named as ``method.registrator`` says."""
+    class_name = method.registrator.rpartition(":")[2]
+    return type(class_name, (LearnedRegistrator,), {
+        "name": method.key,
+        "network_target": method.network,
         "__module__": __name__,
         "__qualname__": class_name,
-        "__doc__": f"{LEARNED_DISPLAY_NAMES[method]} ({target}) from a src.train checkpoint or published weights; "
+        "__doc__": f"{method.display} ({method.network}) from a src.train checkpoint or published weights; "
                    "see LearnedRegistrator.",
     })
-    return cls
 
 
-for _method, _target in LEARNED_METHODS.items():
-    _cls = _make_class(_method, _target)
+for _method in learned_methods():
+    _cls = _adapter_class(_method)
     globals()[_cls.__name__] = _cls
     __all__.append(_cls.__name__)
-    register_registrator(_method, _cls)
-del _method, _target, _cls
+del _method, _cls

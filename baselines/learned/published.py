@@ -20,7 +20,6 @@ checksum or an unknown name raise one-line :class:`~src.errors.CheckpointError` 
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +28,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from baselines.methods import learned_methods
+from src.data.cache import file_sha256
 from src.errors import CheckpointError, ConfigError
 from src.paths import shared_path
 
@@ -38,8 +39,10 @@ BATCHNORM_TENSORS = ("weight", "bias", "running_mean", "running_var", "num_batch
 
 @dataclass(frozen=True)
 class Published:
-    """One published weights file (see the module docstring); ``reported`` holds the authors' numbers
-    for ``protocol`` (metric name → value, as ``reported_source`` states them)."""
+    """One published weights file (see the module docstring); ``method`` is the key of the learned method
+    (:data:`baselines.methods.METHODS`) whose network they fit (None: not a registration network), and
+    ``reported`` holds the authors' numbers for ``protocol`` (metric name → value, as ``reported_source``
+    states them)."""
 
     name: str
     file: str
@@ -54,6 +57,10 @@ class Published:
     protocol: str | None = None
     reported: Mapping[str, float] = field(default_factory=dict)
     reported_source: str = ""
+
+    def __post_init__(self) -> None:
+        if self.method is not None and self.method not in {m.key for m in learned_methods()}:
+            raise ConfigError(f"published weights {self.name}: {self.method} is not the key of a learned method")
 
 
 PUBLISHED: dict[str, Published] = {p.name: p for p in (
@@ -242,14 +249,6 @@ def convert(state: Mapping[str, Tensor], layout: str) -> dict[str, Tensor]:
 
 
 # --- resolving names and files ------------------------------------------------------------------------
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def weights_sha256(spec: str) -> str:

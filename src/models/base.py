@@ -10,6 +10,8 @@ Any network (OMNet, and later the learned baselines) plugs in by implementing tw
   ``normals_src`` (B,N,3) and ``normals_ref`` (B,M,3) from the batch (``data.normals=cache``), or None.
 * ``loss(outputs, transform_gt) -> dict[str, Tensor]`` with the total under ``"loss"`` and its
   terms under other keys (logged as ``train/<key>``).
+
+:func:`check_network` refuses, in one line, a network built without them.
 """
 
 from __future__ import annotations
@@ -18,9 +20,21 @@ from typing import Protocol, runtime_checkable
 
 from torch import Tensor
 
+from src.errors import ConfigError
+
 
 @runtime_checkable
 class RegistrationNetwork(Protocol):
     def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict: ...
 
     def loss(self, outputs: dict, transform_gt: Tensor) -> dict[str, Tensor]: ...
+
+
+def check_network(network: object, target: str) -> RegistrationNetwork:
+    """``network`` (built from ``model.network._target_`` = ``target``) if it has both methods,
+    else a ConfigError naming the missing ones."""
+    if isinstance(network, RegistrationNetwork):
+        return network
+    missing = [name for name in ("forward", "loss") if not callable(getattr(network, name, None))]
+    raise ConfigError(f"model.network: {target} is not a registration network: it has no {' or '.join(missing)} "
+                      "method (the two methods every network needs: src/models/base.py)")

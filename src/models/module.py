@@ -19,6 +19,7 @@ from torchmetrics import MeanMetric
 
 from src.errors import ConfigError
 from src.metrics import RegistrationMetrics
+from src.models.base import check_network
 
 #: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
 SchedulerConfig = dict[str, Any]
@@ -144,7 +145,7 @@ class RegistrationModule(L.LightningModule):
             scheduler = {"name": "multistep", "milestones": list(lr_milestones), "gamma": lr_gamma, "interval": "step"}
         self.save_hyperparameters({"network": network, "lr": lr, "weight_decay": weight_decay, "scheduler": scheduler,
                                    "euler_seq": euler_seq, "compile": compile})
-        self.network: nn.Module = hydra.utils.instantiate(network)
+        self.network: nn.Module = check_network(hydra.utils.instantiate(network), network["_target_"])
         self.val_metrics = RegistrationMetrics(euler_seq)
         self.test_metrics = RegistrationMetrics(euler_seq)
         # Eval losses as sum-reduced metrics: Lightning's own sync_dist mean truncates the (integer)

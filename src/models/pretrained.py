@@ -23,7 +23,7 @@ import yaml
 
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
-from src.runtime import read_csv_logs
+from src.reporting import read_csv_logs
 
 SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")

@@ -1,0 +1,41 @@
+"""The Lightning Trainer of a config: its loggers, callbacks (``conf/callbacks/``) and checkpoint writer."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import hydra
+import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
+from omegaconf import DictConfig
+
+from src.checkpoint_io import AtomicCheckpointIO
+from src.files import remove_stale_temporaries
+from src.lightning_compat import patch_ddp_subprocess_launcher
+
+log = logging.getLogger(__name__)
+
+#: Callbacks of ``conf/callbacks/default.yaml`` that only a training run builds.
+TRAINING_ONLY_CALLBACKS = ("checkpoint", "periodic_checkpoint", "rng_state")
+
+
+def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
+    """Trainer with the configured loggers and callbacks (checkpointing only when training).
+
+    Checkpoints are written by :class:`~src.checkpoint_io.AtomicCheckpointIO` (a temporary beside
+    the target, then a rename); temporaries left in the checkpoint folders by killed runs are
+    removed here, before training starts.
+    """
+    loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
+    callbacks = [
+        hydra.utils.instantiate(c)
+        for name, c in (cfg.get("callbacks") or {}).items()
+        if with_checkpoints or name not in TRAINING_ONLY_CALLBACKS
+    ]
+    for callback in callbacks:
+        if isinstance(callback, ModelCheckpoint) and callback.dirpath:
+            for path in remove_stale_temporaries(Path(callback.dirpath)):
+                log.info("removed %s, a partial checkpoint left by a killed run", path)
+    patch_ddp_subprocess_launcher()
+    return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks, plugins=[AtomicCheckpointIO()])
