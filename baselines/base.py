@@ -9,9 +9,10 @@ learned networks get adapters that wrap a checkpoint behind the same interface, 
 ``needs_training = True`` and usually override :meth:`Registrator._register_batch` to run a
 whole batch on the GPU at once.
 
-Input checking lives here, in one place (:func:`check_cloud`, :func:`check_batch`), so every
-method rejects empty, NaN, wrongly shaped or degenerate clouds (all points on one line, fewer than
-3 distinct points) with the same one-line :class:`~src.errors.PointCloudError`.
+Every method checks its input with :func:`~src.geometry.clouds.check_cloud` and
+:func:`~src.geometry.clouds.check_batch` (which the datasets use too), so each rejects empty, NaN, wrongly
+shaped or degenerate clouds (all points on one line, fewer than 3 distinct points) with the same one-line
+:class:`~src.errors.PointCloudError`.
 
 Conditioning lives here too, for every method registering through :meth:`Registrator.register`
 (or the default :meth:`Registrator._register_batch`), so that no single call gives a wrong result
@@ -53,6 +54,7 @@ import numpy as np
 from baselines.methods import METHODS, find_method
 from baselines.result import FIT_THRESHOLD, RegistrationResult, check_threshold, one_line
 from src.errors import ConfigError, PointCloudError
+from src.geometry.clouds import MIN_POINTS, check_batch, check_cloud
 
 __all__ = [
     "MIN_POINTS",
@@ -65,16 +67,10 @@ __all__ = [
     "check_batch",
     "check_cloud",
     "get_registrator",
-    "project_to_rotation",
     "register_registrator",
     "resolve_registrator",
-    "rigid_transform",
 ]
 
-#: Fewest points a cloud may have: a rigid transform is not determined by fewer than 3.
-MIN_POINTS = 3
-#: Relative size under which the second singular value of a centred cloud counts as zero (a line).
-_COLLINEAR_RTOL = 1e-9
 #: Pair radii (farthest point from its cloud's centroid, larger cloud) the methods are tuned for.
 WORKING_RADIUS = (0.125, 2.0)
 #: Farthest distance from the origin of a point of a pair inside the working frame.
@@ -82,78 +78,6 @@ WORKING_REACH = 4.0
 #: Most points per cloud a method registers by default: at 10k points one core of the 2-core test
 #: machine took ~1 s for FGR, ~0.4 s ICP, ~0.3 s Symmetric ICP, ~2 s Go-ICP (FGR at 20k: ~10 s).
 POINT_BUDGET = 10_000
-
-
-# --------------------------------------------------------------------------------------
-# Input and output checks
-# --------------------------------------------------------------------------------------
-
-
-def _as_float64(points: Any, name: str) -> np.ndarray:
-    try:
-        return np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise PointCloudError(f"{name}: cannot be read as an array of numbers ({exc})") from None
-
-
-def check_cloud(points: Any, name: str = "points") -> np.ndarray:
-    """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array or raise PointCloudError."""
-    arr = _as_float64(points, name)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise PointCloudError(f"{name}: expected an (N, 3) array of points, got shape {tuple(arr.shape)}")
-    if arr.shape[0] < MIN_POINTS:
-        raise PointCloudError(f"{name}: needs at least {MIN_POINTS} points, got {arr.shape[0]}")
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        n_bad = int(bad.any(axis=1).sum())
-        raise PointCloudError(
-            f"{name}: {n_bad} of {arr.shape[0]} points have NaN or infinite coordinates"
-        )
-    _check_not_degenerate(arr, name)
-    return np.ascontiguousarray(arr)
-
-
-def _check_not_degenerate(arr: np.ndarray, name: str) -> None:
-    """Raise PointCloudError if all points lie on one line (fewer than 3 distinct points included):
-    the rotation about that line is then undetermined."""
-    singular = np.linalg.svd(arr - arr.mean(axis=0), compute_uv=False)
-    if singular[1] > _COLLINEAR_RTOL * singular[0]:
-        return
-    distinct = len(np.unique(arr, axis=0))
-    shape = "all the same point" if distinct == 1 else f"all on one line ({distinct} distinct)"
-    raise PointCloudError(
-        f"{name}: degenerate cloud, its {arr.shape[0]} points are {shape}: a rigid transform needs at least "
-        f"{MIN_POINTS} points not on one line"
-    )
-
-
-def check_batch(points: Any, name: str = "points") -> np.ndarray:
-    """Return ``points`` as a float64 ``(B, N, 3)`` array or raise PointCloudError."""
-    arr = _as_float64(points, name)
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise PointCloudError(
-            f"{name}: expected a (B, N, 3) batch of point clouds, got shape {tuple(arr.shape)}"
-        )
-    if arr.shape[0] == 0:
-        raise PointCloudError(f"{name}: the batch is empty (B = 0)")
-    for b in range(arr.shape[0]):
-        check_cloud(arr[b], f"{name}[{b}]")
-    return np.ascontiguousarray(arr)
-
-
-def rigid_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Assemble a 4x4 float64 homogeneous transform from ``R`` (3, 3) and ``t`` (3,)."""
-    out = np.eye(4)
-    out[:3, :3] = rotation
-    out[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
-    return out
-
-
-def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrix (Frobenius norm) to a 3x3 matrix, via SVD with det = +1."""
-    u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 # --------------------------------------------------------------------------------------

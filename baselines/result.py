@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from src.errors import ConfigError
+from src.geometry.numpy_rigid import apply_transform
 
 __all__ = ["FIT_THRESHOLD", "RegistrationResult", "inlier_fit", "one_line", "transform_problem"]
 
@@ -77,8 +78,7 @@ def inlier_fit(src: np.ndarray, ref: np.ndarray, transform: np.ndarray, threshol
     within ``threshold``, and the root mean square of those distances (0 when there is none)."""
     from scipy.spatial import cKDTree
 
-    moved = src @ transform[:3, :3].T + transform[:3, 3]
-    distances, _ = cKDTree(ref).query(moved, distance_upper_bound=threshold)
+    distances, _ = cKDTree(ref).query(apply_transform(transform, src), distance_upper_bound=threshold)
     inliers = distances[np.isfinite(distances)]
     rmse = math.sqrt(float(np.mean(inliers**2))) if len(inliers) else 0.0
     return len(inliers) / len(src), rmse

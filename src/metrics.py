@@ -24,10 +24,15 @@ METRIC_NAMES: tuple[str, ...] = (
 )
 
 
-def chamfer_distance(a: Tensor, b: Tensor) -> Tensor:
-    """Symmetric Chamfer distance per pair: mean nearest distance a→b plus b→a. a (B,N,3), b (B,M,3)."""
+def chamfer_distance(a: Tensor, b: Tensor, squared: bool = False) -> Tensor:
+    """Symmetric Chamfer distance per pair (B,): the mean distance from each point of a (B,N,3) to its
+    nearest point of b (B,M,3), plus the same from b to a; ``squared``: of the squared distances (FMR's
+    loss, :func:`baselines.learned.common.global_feature.chamfer_loss`)."""
     dist = torch.cdist(a, b)
-    return dist.min(dim=2).values.mean(dim=1) + dist.min(dim=1).values.mean(dim=1)
+    nearest_ab, nearest_ba = dist.amin(dim=2), dist.amin(dim=1)
+    if squared:
+        nearest_ab, nearest_ba = nearest_ab.square(), nearest_ba.square()
+    return nearest_ab.mean(dim=1) + nearest_ba.mean(dim=1)
 
 
 def pair_errors(pred: Tensor, gt: Tensor, euler_seq: str) -> dict[str, Tensor]:

@@ -21,10 +21,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from baselines.base import MIN_POINTS
 from src.data.datamodule import NORMALS
 from src.data.transforms import PARTIAL_MANNERS, PERTURBATIONS, SAMPLINGS
 from src.errors import ConfigError, user_error_behind
+from src.geometry.clouds import MIN_POINTS
 
 
 @dataclass(frozen=True)

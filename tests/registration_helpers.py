@@ -69,13 +69,13 @@ def assert_rigid(transform: torch.Tensor) -> None:
     torch.testing.assert_close(transform[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=rot.dtype).expand(b, 4))
 
 
-def train_losses(model: torch.nn.Module, batch, steps: int, lr: float = 1e-3) -> list[float]:
-    """Losses of ``steps`` Adam steps of ``model`` on one (src, ref, gt) batch."""
+def train_losses(model: torch.nn.Module, batch, steps: int, lr: float = 1e-3, **inputs) -> list[float]:
+    """Losses of ``steps`` Adam steps of ``model`` on one (src, ref, gt) batch (and keyword ``inputs``: normals)."""
     src, ref, gt = batch
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     losses = []
     for _ in range(steps):
-        loss = model.loss(model(src, ref, gt), gt)["loss"]
+        loss = model.loss(model(src, ref, gt, **inputs), gt)["loss"]
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -102,6 +102,39 @@ def reload_via_checkpoint(module, path):
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                 "pytorch-lightning_version": lightning.__version__}, path)
     return RegistrationModule.load_from_checkpoint(path, map_location="cpu").eval()
+
+
+def assert_reloads_the_same(module, path, src: torch.Tensor, ref: torch.Tensor):
+    """``module`` (in eval mode) reloaded from a checkpoint at ``path`` (:func:`reload_via_checkpoint`) gives
+    the same outputs on (src, ref); returns the reloaded module."""
+    loaded = reload_via_checkpoint(module, path)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(src, ref), module(src, ref))
+    return loaded
+
+
+def eval_losses_before_after(model: torch.nn.Module, batch, steps: int = 20,
+                             lr: float = 1e-3) -> tuple[dict[str, float], dict[str, float]]:
+    """For a global-feature network (LK runs on the BatchNorm running statistics): its BatchNorm statistics
+    warmed up on one (src, ref, gt) batch (:func:`warm_up_batchnorm`: their drift would otherwise mask the
+    learning), then its eval-mode losses on the batch before and after ``steps`` Adam steps on it."""
+    src, ref, gt = batch
+    warm_up_batchnorm(model, src, ref)
+
+    def eval_losses() -> dict[str, float]:
+        model.eval()
+        with torch.no_grad():
+            losses = model.loss(model(src, ref, gt), gt)
+        model.train()
+        return {k: v.item() for k, v in losses.items()}
+
+    before = eval_losses()
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    for _ in range(steps):
+        optimizer.zero_grad()
+        model.loss(model(src, ref, gt), gt)["loss"].backward()
+        optimizer.step()
+    return before, eval_losses()
 
 
 def seeded_losses_before_after(model: torch.nn.Module, batch, steps: int, lr: float) -> tuple[float, float]:

@@ -10,8 +10,9 @@ from baselines.base import POINT_BUDGET
 from baselines.classical import goicp as goicp_module
 from baselines.classical.fgr import FGR
 from baselines.classical.symmetric_icp import symmetric_step
-from baselines.testing import apply_transform, euler_transform, make_pair, rotation_error_deg, translation_error
+from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
 from src.errors import ConfigError, PointCloudError
+from src.geometry.numpy_rigid import apply_transform
 
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~10° about a tilted axis
 LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total

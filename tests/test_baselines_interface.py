@@ -19,12 +19,12 @@ from baselines.base import (
     _REGISTRY,
     POINT_BUDGET,
     budget_voxel_size,
-    project_to_rotation,
     voxel_down_sample,
     working_frame,
 )
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface, make_pair
 from src.errors import ConfigError, PointCloudError
+from src.geometry.numpy_rigid import project_to_rotation
 
 
 def test_registry_lists_the_classical_methods():
@@ -105,6 +105,20 @@ def test_bad_clouds_raise_one_line_point_cloud_errors(points, match):
     with pytest.raises(PointCloudError, match=match) as info:
         reg.register(good, points)
     assert str(info.value).startswith("ref:")
+
+
+@pytest.mark.parametrize(
+    "points", [np.zeros((2, 3)), np.zeros((5, 2)), [[0, 0, 0], [1, 0, 0], [0, float("nan"), 0]], np.ones((4, 3))]
+)
+def test_torch_clouds_get_the_same_one_line_errors(points):
+    import torch
+
+    with pytest.raises(PointCloudError) as numpy_error:
+        check_cloud(np.asarray(points), "src")
+    with pytest.raises(PointCloudError) as torch_error:
+        check_cloud(torch.tensor(np.asarray(points), dtype=torch.float32, requires_grad=True), "src")
+    assert str(torch_error.value) == str(numpy_error.value) and "\n" not in str(numpy_error.value)
+    check_cloud(np.ones((4, 3)), "normals", allow_degenerate=True)  # the one check that can be left out
 
 
 def test_check_cloud_returns_float64_contiguous():

@@ -1,10 +1,14 @@
-"""Batched torch geometry against SciPy's Rotation on random inputs."""
+"""Batched torch geometry against SciPy's Rotation on random inputs; its NumPy counterparts against it."""
+
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from src.geometry import numpy_rigid
 from src.geometry import (
     euler_to_matrix,
     matrix_to_euler,
@@ -89,3 +93,25 @@ def test_rotation_angle_matches_scipy_magnitude():
     np.testing.assert_allclose(
         rotation_angle(_t(ROTS.as_matrix())).numpy(), np.degrees(ROTS.magnitude()), atol=1e-6
     )
+
+
+@pytest.mark.parametrize("seq", ["xyz", "zyx"])
+def test_numpy_helpers_match_the_torch_geometry(seq):
+    angles, trans = RNG.uniform(-80, 80, size=3), RNG.normal(size=3)
+    transform = numpy_rigid.euler_transform(angles, trans, seq)
+    batched = se3_from_rt(euler_to_matrix(_t(angles), seq, degrees=True), _t(trans))
+    np.testing.assert_allclose(transform, batched.numpy(), atol=1e-12)
+    points = RNG.normal(size=(30, 3))
+    np.testing.assert_allclose(numpy_rigid.apply_transform(transform, points), se3_apply(batched, _t(points)).numpy(),
+                               atol=1e-12)
+    np.testing.assert_allclose(numpy_rigid.inverse_transform(transform), se3_inverse(batched).numpy(), atol=1e-12)
+    np.testing.assert_allclose(numpy_rigid.inverse_transform(transform) @ transform, np.eye(4), atol=1e-12)
+    assert numpy_rigid.rotation_angle(transform[:3, :3]) == pytest.approx(rotation_angle(batched[:3, :3]).item())
+    assert numpy_rigid.rotation_angle(transform[:3, :3], degrees=False) == pytest.approx(
+        np.radians(rotation_angle(batched[:3, :3]).item()))
+
+
+def test_the_numpy_helpers_and_cloud_checks_import_no_torch():
+    code = ("import sys, src.geometry.numpy_rigid, src.geometry.clouds, src.data.transforms, baselines.base; "
+            "assert 'torch' not in sys.modules, 'torch imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)

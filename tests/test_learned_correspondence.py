@@ -7,10 +7,8 @@ import torch
 
 from baselines.learned.common.correspondence import (
     DGCNN,
-    MLP,
     AttentionPointer,
     EdgeConv,
-    GroupNormLast,
     edge_features,
     edge_linear,
     ball_query,
@@ -18,10 +16,10 @@ from baselines.learned.common.correspondence import (
     gumbel_softmax,
     matching_logits,
     ppf_features,
-    scaled,
     sinkhorn,
     soft_correspondence_svd,
 )
+from baselines.learned.common.layers import MIN_CHANNELS, MLP, GroupNormLast, scaled
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
 
 
@@ -173,6 +171,7 @@ def test_mlp_group_norm_paths_agree_and_edgeconv_modes():
     out = EdgeConv([8, 4], mode="diff", norm="none", last_activation=False)(y, idx)
     assert out.shape == (3, 7, 4)
     assert scaled(512, 0.25, 4) == 128 and scaled(96, 0.0625, 8) == 8 and scaled(64, 1.0) == 64
+    assert scaled(64, 0.0625) == 4 and scaled(64, 0.0625, minimum=MIN_CHANNELS) == 8 == MIN_CHANNELS
     with pytest.raises(ValueError):
         MLP([3, 4], norm="layer")
 

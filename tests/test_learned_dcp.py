@@ -8,7 +8,7 @@ from baselines.learned.adapter import compose_model_config
 from baselines.learned.dcp import DCP
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
-from registration_helpers import reload_via_checkpoint
+from registration_helpers import assert_reloads_the_same
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import train_losses
 from registration_helpers import exact_pair_batch as _batch
@@ -51,10 +51,7 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
     assert sum(p.numel() for p in module.network.parameters()) > 5_000_000
     module.configure_optimizers()
     module = instantiate(small).eval()
-    loaded = reload_via_checkpoint(module, tmp_path / "dcp.ckpt")
-    src, ref, _ = _batch(b=2)
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(src, ref), module(src, ref))
+    assert_reloads_the_same(module, tmp_path / "dcp.ckpt", *_batch(b=2)[:2])
 
 
 def test_dcp_v1_doubles_the_embeddings_as_the_official_identity_pointer():

@@ -11,7 +11,7 @@ from baselines.learned.adapter import compose_model_config
 from baselines.learned.common.encoders import PointNetEncoder
 from baselines.learned.common.global_feature import (
     FeatureMetricDecoder,
-    chamfer_distance,
+    chamfer_loss,
     eval_mode,
     gmm_params,
     gmm_posterior,
@@ -27,7 +27,7 @@ from baselines.learned.common.procrustes import weighted_procrustes
 from src.config import register_resolvers
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
 from src.models.module import RegistrationModule
-from registration_helpers import reload_via_checkpoint
+from registration_helpers import assert_reloads_the_same
 
 register_resolvers()
 
@@ -109,7 +109,7 @@ def test_lk_runs_in_float32_under_bf16_autocast():
         with torch.autocast("cpu", dtype=torch.bfloat16):
             assert (torch.randn(2, 3) @ torch.randn(3, 3)).dtype == torch.bfloat16  # autocast is on
             mixed = lk_register(lambda p: encoder(p)[1], src, ref, torch.full((6,), 1e-2), max_iter=5)
-            loss = chamfer_distance(src.bfloat16(), ref.bfloat16())
+            loss = chamfer_loss(src.bfloat16(), ref.bfloat16())
     assert mixed.transforms[-1].dtype == torch.float32 and loss.dtype == torch.float32
     torch.testing.assert_close(mixed.transforms[-1], plain.transforms[-1])
 
@@ -129,10 +129,10 @@ def test_decoder_and_chamfer():
     out = decoder(torch.randn(4, 64))
     assert out.shape == (4, 30, 3) and out.abs().max() <= 1
     a = torch.randn(2, 20, 3)
-    assert chamfer_distance(a, a[:, torch.randperm(20)]).item() == pytest.approx(0.0, abs=1e-5)
+    assert chamfer_loss(a, a[:, torch.randperm(20)]).item() == pytest.approx(0.0, abs=1e-5)
     b = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]])
     c = torch.tensor([[[0.0, 0, 0]]])
-    assert chamfer_distance(b, c).item() == pytest.approx(0.5 + 0.0)  # (0 + 1)/2 one way, 0 the other
+    assert chamfer_loss(b, c).item() == pytest.approx(0.5 + 0.0)  # (0 + 1)/2 one way, 0 the other
 
 
 def test_gmm_posterior_and_parameters():
@@ -212,8 +212,5 @@ def test_config_composes_and_instantiates_the_module(name):
 def test_load_from_checkpoint_rebuilds_the_network(name, tmp_path):
     cfg = compose_model_config(name, 0.125)
     module = instantiate(cfg).eval()
-    loaded = reload_via_checkpoint(module, tmp_path / "model.ckpt")
+    loaded = assert_reloads_the_same(module, tmp_path / "model.ckpt", *_pair(b=2, n=64)[:2])
     assert loaded.network_target == NETWORKS[name]
-    src, ref, _ = _pair(b=2, n=64)
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(src, ref), module(src, ref))

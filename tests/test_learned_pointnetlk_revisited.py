@@ -11,7 +11,7 @@ from baselines.learned.common.global_feature import eval_mode, lk_jacobian, poin
 from baselines.learned.pointnetlk_revisited import PointNetLKRevisited
 from src.config import register_resolvers
 from src.geometry import se3_inverse
-from registration_helpers import assert_rigid, reload_via_checkpoint, warm_up_batchnorm
+from registration_helpers import assert_reloads_the_same, assert_rigid, eval_losses_before_after
 from registration_helpers import exact_pair_batch as _batch
 from registration_helpers import partial_pair_batch
 
@@ -73,27 +73,11 @@ def test_loss_is_pose_error_plus_change_of_the_last_residual():
 
 
 def test_training_steps_lower_the_loss_on_a_tiny_batch():
-    # noisy partial pairs (on exact copies LK either converges or not, and the loss jumps); BatchNorm
-    # statistics warmed up first, since LK runs on them (as in the PointNetLK test)
+    # noisy partial pairs (on exact copies LK either converges or not, and the loss jumps)
     torch.manual_seed(0)
     model = PointNetLKRevisited(width=0.125, num_random_points=64)
-    src, ref, gt = partial_pair_batch(b=4, n=64)
-    warm_up_batchnorm(model, src, ref)
-
-    def eval_loss() -> float:
-        model.eval()
-        with torch.no_grad():
-            value = model.loss(model(src, ref, gt), gt)["loss/transform"].item()
-        model.train()
-        return value
-
-    before = eval_loss()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-    for _ in range(20):
-        optimizer.zero_grad()
-        model.loss(model(src, ref, gt), gt)["loss"].backward()
-        optimizer.step()
-    assert eval_loss() < 0.5 * before
+    before, after = eval_losses_before_after(model, partial_pair_batch(b=4, n=64))
+    assert after["loss/transform"] < 0.5 * before["loss/transform"]
 
 
 def test_config_composes_instantiates_and_reloads(tmp_path):
@@ -104,7 +88,4 @@ def test_config_composes_instantiates_and_reloads(tmp_path):
     # 143,104 published parameters, less the 1,216 convolution biases (folded into the running means)
     assert sum(p.numel() for p in module.network.parameters()) == 141_888
     small = instantiate(compose_model_config("pointnetlk_revisited", 0.125)).eval()
-    loaded = reload_via_checkpoint(small, tmp_path / "plkr.ckpt")
-    src, ref, _ = _batch(b=2)
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(src, ref), small(src, ref))
+    assert_reloads_the_same(small, tmp_path / "plkr.ckpt", *_batch(b=2)[:2])

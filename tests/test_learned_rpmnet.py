@@ -13,7 +13,7 @@ from baselines.learned.rpmnet import RPMNet
 from src.config import register_resolvers
 from src.errors import ConfigError, PointCloudError
 from src.models.module import RegistrationModule
-from registration_helpers import reload_via_checkpoint
+from registration_helpers import assert_reloads_the_same
 from registration_helpers import assert_rigid as _assert_rigid
 from registration_helpers import train_losses
 from registration_helpers import exact_pair_batch as _batch
@@ -144,14 +144,7 @@ def test_a_few_training_steps_with_given_normals_lower_the_loss():
     src, ref, gt = _batch(b=4)
     normals_ref = estimate_normals(ref, 10)
     normals_src = normals_ref @ gt[:, :3, :3]  # src = gt⁻¹·ref: its normals rotated back by Rᵀ
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(6):
-        loss = model.loss(model(src, ref, gt, normals_src=normals_src, normals_ref=normals_ref), gt)["loss"]
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
+    losses = train_losses(model, (src, ref, gt), steps=6, normals_src=normals_src, normals_ref=normals_ref)
     assert losses[-1] < losses[0]
 
 
@@ -174,7 +167,4 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
     assert instantiate(compose_model_config("rpmnet", 0.125, ["model.network.normals=given"])).network.uses_normals
     module.configure_optimizers()
     module = instantiate(small).eval()
-    loaded = reload_via_checkpoint(module, tmp_path / "rpmnet.ckpt")
-    src, ref, _ = _batch(b=2)
-    with torch.no_grad():
-        torch.testing.assert_close(loaded(src, ref), module(src, ref))
+    assert_reloads_the_same(module, tmp_path / "rpmnet.ckpt", *_batch(b=2)[:2])

@@ -70,6 +70,10 @@ def test_chamfer_hand_computed():
     b = torch.tensor([[[0.0, 0, 0]]])
     # a->b: (0 + 1)/2 = 0.5 ; b->a: 0
     assert chamfer_distance(a, b).item() == pytest.approx(0.5)
+    far = torch.tensor([[[0.0, 0, 0], [2.0, 0, 0]], [[1.0, 0, 0], [3.0, 0, 0]]])
+    # per pair; squared (FMR's loss): pair 0 a->b (0 + 4)/2, b->a 0; pair 1 a->b (1 + 9)/2, b->a 1
+    assert chamfer_distance(far, b.expand(2, 1, 3)).tolist() == pytest.approx([1.0, 3.0])
+    assert chamfer_distance(far, b.expand(2, 1, 3), squared=True).tolist() == pytest.approx([2.0, 6.0])
 
 
 def test_rejects_unknown_convention():

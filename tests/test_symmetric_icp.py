@@ -20,10 +20,11 @@ from scipy.spatial.transform import Rotation
 
 from baselines import get_registrator
 from baselines.classical import symmetric_icp as sym
-from baselines.testing import apply_transform, euler_transform, rotation_error_deg
+from baselines.testing import euler_transform, rotation_error_deg
 from src.data.sampling import sample_shape
 from src.data.synthetic import generate_shapes
 from src.data.transforms import build_pair_transforms
+from src.geometry.numpy_rigid import apply_transform
 
 SHAPES = 16  # synthetic airplanes (the generator's first category)
 PAIRS_PER_SHAPE = 3  # per sampling (OS, TS)

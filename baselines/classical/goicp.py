@@ -58,8 +58,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, _positive, project_to_rotation, rigid_transform
+from baselines.base import Registrator, RegistratorConfig, _positive
 from src.errors import ConfigError
+from src.geometry.numpy_rigid import project_to_rotation, rigid_transform
 
 INSTALL_HINT = "bash baselines/classical/install_goicp.sh"
 

@@ -78,10 +78,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
-from baselines.base import Registrator, RegistratorConfig, _positive, project_to_rotation, rigid_transform
+from baselines.base import Registrator, RegistratorConfig, _positive
 from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, to_pcd
 from src.errors import ConfigError
+from src.geometry.numpy_rigid import apply_transform, project_to_rotation, rigid_transform, rotation_angle
 
 
 @dataclass
@@ -114,13 +116,6 @@ class SymmetricICPConfig(RegistratorConfig):
             )
 
 
-def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation matrix for a rotation by ``angle`` (rad) about the unit vector ``axis``."""
-    x, y, z = axis
-    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
-
-
 def nearest_pairs(
     src_tree: cKDTree, ref_tree: cKDTree, transform: np.ndarray, max_distance: float, two_way: bool
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -132,7 +127,7 @@ def nearest_pairs(
     moving the reference back into the source's frame (same distances, the source's tree).
     """
     rot, trans = transform[:3, :3], transform[:3, 3]
-    dist, idx = ref_tree.query(src_tree.data @ rot.T + trans, distance_upper_bound=max_distance)
+    dist, idx = ref_tree.query(apply_transform(transform, src_tree.data), distance_upper_bound=max_distance)
     found = np.isfinite(dist)
     src_idx, ref_idx = np.flatnonzero(found), idx[found]
     if two_way:
@@ -180,7 +175,7 @@ def symmetric_step(p: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray | 
     a_tilde, t_tilde = x[:3], x[3:]
     tan_theta = float(np.linalg.norm(a_tilde))
     theta = float(np.arctan(tan_theta))
-    half = np.eye(3) if tan_theta == 0.0 else axis_angle_matrix(a_tilde / tan_theta, theta)
+    half = np.eye(3) if tan_theta == 0.0 else Rotation.from_rotvec(a_tilde / tan_theta * theta).as_matrix()
     t = t_tilde * np.cos(theta) * scale  # back to input units
 
     # M = R · T(t) · R in centred coordinates, then conjugate by the centring shift.
@@ -215,17 +210,16 @@ class SymmetricICP(Registrator):
             src_idx, ref_idx = nearest_pairs(
                 src_tree, ref_tree, transform, float(cfg.max_correspondence_distance), cfg.two_way
             )
-            rot, trans = transform[:3, :3], transform[:3, 3]
-            n = normal_sums(src_normals[src_idx] @ rot.T, ref_normals[ref_idx])
+            n = normal_sums(src_normals[src_idx] @ transform[:3, :3].T, ref_normals[ref_idx])
             good = np.einsum("ij,ij->i", n, n) > 1e-12
             if int(good.sum()) < cfg.min_correspondences:
                 break
             src_idx, ref_idx = src_idx[good], ref_idx[good]
-            step = symmetric_step(src[src_idx] @ rot.T + trans, ref[ref_idx], n[good])
+            step = symmetric_step(apply_transform(transform, src[src_idx]), ref[ref_idx], n[good])
             if step is None:
                 break
             transform = step @ transform
-            angle = float(np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+            angle = rotation_angle(step[:3, :3], degrees=False)
             if angle < cfg.rotation_tolerance and float(np.linalg.norm(step[:3, 3])) < cfg.translation_tolerance:
                 break
         # re-orthonormalise: many composed steps accumulate rounding error

@@ -35,10 +35,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, check_cloud
+from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.errors import CheckpointError, ConfigError
+from src.geometry.clouds import check_cloud
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "read_checkpoint_network", "run_batches"]
 
@@ -294,7 +295,7 @@ def run_batches(
     retried pair by pair (:meth:`~baselines.base.Registrator.register_result`), and a pair that still
     raises, or whose estimate is not a finite proper rigid transform, gets the identity with
     ``failed=True`` and a one-line reason. Inputs are checked first
-    (:func:`~baselines.base.check_cloud`: PointCloudError for < 3 points or NaN).
+    (:func:`~src.geometry.clouds.check_cloud`: PointCloudError for < 3 points, NaN or a degenerate cloud).
     """
     from tqdm.auto import tqdm
 

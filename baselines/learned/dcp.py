@@ -35,7 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.learned.common.correspondence import AttentionPointer, DGCNN, matching_logits, scaled, soft_correspondence_svd
+from baselines.learned.common.correspondence import AttentionPointer, DGCNN, matching_logits, soft_correspondence_svd
+from baselines.learned.common.layers import scaled
 
 
 class DCP(nn.Module):

@@ -34,7 +34,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from baselines.learned.common.encoders import SharedMLP
 from baselines.learned.common.global_feature import (
     at_least_fp32,
     composed_identity_error,
@@ -43,8 +42,8 @@ from baselines.learned.common.global_feature import (
     gmm_posterior,
     gmm_register,
     rri_features,
-    scaled_channels,
 )
+from baselines.learned.common.layers import MIN_CHANNELS, MLP, scaled
 from src.geometry import se3_inverse
 
 
@@ -53,9 +52,9 @@ class DeepGMRBackbone(nn.Module):
 
     def __init__(self, in_channels: int, d_model: int, n_clusters: int, width: float = 1.0) -> None:
         super().__init__()
-        w = lambda c: scaled_channels(c, width)  # noqa: E731
-        self.encoder = SharedMLP((in_channels, w(64), w(128), w(256), w(d_model)))
-        self.decoder = SharedMLP((2 * w(d_model), w(512), w(256), w(128)))
+        w = lambda c: scaled(c, width, minimum=MIN_CHANNELS)  # noqa: E731
+        self.encoder = MLP((in_channels, w(64), w(128), w(256), w(d_model)))
+        self.decoder = MLP((2 * w(d_model), w(512), w(256), w(128)))
         self.logits = nn.Linear(w(128), n_clusters)
 
     def forward(self, features: Tensor) -> Tensor:

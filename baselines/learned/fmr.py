@@ -35,18 +35,18 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-import torch
 from torch import Tensor, nn
 
 from baselines.learned.common.encoders import PointNetEncoder
 from baselines.learned.common.global_feature import (
     FeatureMetricDecoder,
     center,
-    chamfer_distance,
+    chamfer_loss,
     composed_identity_error,
     eval_mode,
     full_precision,
     lk_register,
+    register_lk_delta,
 )
 from baselines.learned.pointnetlk import pointnet_channels
 from src.data.transforms import build_pair_transforms
@@ -81,11 +81,7 @@ class FMR(nn.Module):
         channels = pointnet_channels(dim_k, width)
         self.encoder = PointNetEncoder(channels)
         self.decoder = FeatureMetricDecoder(channels[-1], decoder_points)
-        step = torch.full((1, 6), float(delta))
-        if learn_delta:
-            self.delta = nn.Parameter(step)
-        else:
-            self.register_buffer("delta", step)
+        register_lk_delta(self, delta, learn_delta)
 
     def features(self, points: Tensor) -> Tensor:
         return self.encoder(points)[1]
@@ -109,7 +105,7 @@ class FMR(nn.Module):
     def loss(self, outputs: dict, transform_gt: Tensor) -> dict[str, Tensor]:
         with full_precision(transform_gt.device):  # float32 even under bf16 autocast
             (ref, src), (rec_ref, rec_src) = outputs["centred"], outputs["reconstructions"]
-            chamfer = chamfer_distance(ref, rec_ref) + chamfer_distance(src, rec_src)
+            chamfer = chamfer_loss(ref, rec_ref) + chamfer_loss(src, rec_src)
             transform = composed_identity_error(outputs["transforms"][-1], se3_inverse(transform_gt)).mean()
             total = self.chamfer_weight * chamfer + self.transform_weight * transform
             return {"loss": total, "loss/chamfer": chamfer, "loss/transform": transform}

@@ -43,8 +43,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.learned.common.correspondence import MLP, EdgeConv, gather_neighbours, scaled
+from baselines.learned.common.correspondence import EdgeConv, gather_neighbours
 from baselines.learned.common.encoders import knn_indices
+from baselines.learned.common.layers import MLP, scaled
 from baselines.learned.common.procrustes import weighted_procrustes
 from src.geometry import se3_apply
 

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
 from baselines.learned.common.encoders import PointNetEncoder
-from baselines.learned.common.global_feature import scaled_channels
+from baselines.learned.common.layers import MIN_CHANNELS, scaled
 from baselines.learned.pointnetlk import pointnet_channels
 
 
@@ -42,7 +42,7 @@ class PointNetClassifier(nn.Module):
     def __init__(self, num_classes: int = 40, dim_k: int = 1024, width: float = 1.0, dropout: float = 0.7) -> None:
         super().__init__()
         self.encoder = PointNetEncoder(pointnet_channels(dim_k, width))
-        hidden = [scaled_channels(c, width) for c in (512, 256)]
+        hidden = [scaled(c, width, minimum=MIN_CHANNELS) for c in (512, 256)]
         layers: list[nn.Module] = []
         for c_in, c_out in zip([self.encoder.mlp.layers[-3].out_features, hidden[0]], hidden):
             layers += [nn.Linear(c_in, c_out), nn.BatchNorm1d(c_out), nn.ReLU(inplace=True), nn.Dropout(dropout)]

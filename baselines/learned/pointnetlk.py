@@ -55,8 +55,9 @@ from baselines.learned.common.global_feature import (
     eval_mode,
     full_precision,
     lk_register,
-    scaled_channels,
+    register_lk_delta,
 )
+from baselines.learned.common.layers import MIN_CHANNELS, scaled
 from src.geometry import se3_inverse
 
 
@@ -71,7 +72,7 @@ def learning3d_reported_transform(transform: Tensor, points_src: Tensor, points_
 
 def pointnet_channels(dim_k: int, width: float) -> tuple[int, ...]:
     """PointNetLK's / FMR's encoder channels 3-64-64-64-128-dim_k, scaled by ``width``."""
-    return (3, *(scaled_channels(c, width) for c in (64, 64, 64, 128, dim_k)))
+    return (3, *(scaled(c, width, minimum=MIN_CHANNELS) for c in (64, 64, 64, 128, dim_k)))
 
 
 class PointNetLK(nn.Module):
@@ -91,11 +92,7 @@ class PointNetLK(nn.Module):
         self.max_iter, self.eval_max_iter, self.xtol = max_iter, eval_max_iter, xtol
         self.feature_loss_weight, self.feature_init = feature_loss_weight, feature_init
         self.encoder = PointNetEncoder(pointnet_channels(dim_k, width))
-        step = torch.full((1, 6), float(delta))
-        if learn_delta:
-            self.delta = nn.Parameter(step)
-        else:
-            self.register_buffer("delta", step)
+        register_lk_delta(self, delta, learn_delta)
         self._weights_loaded = False
 
     def train(self, mode: bool = True) -> PointNetLK:

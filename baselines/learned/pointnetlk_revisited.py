@@ -49,8 +49,8 @@ from baselines.learned.common.global_feature import (
     full_precision,
     lk_register,
     pointnet_jacobian,
-    scaled_channels,
 )
+from baselines.learned.common.layers import MIN_CHANNELS, scaled
 from src.geometry import se3_inverse
 
 
@@ -78,7 +78,7 @@ class PointNetLKRevisited(nn.Module):
         super().__init__()
         self.max_iter, self.eval_max_iter, self.xtol = max_iter, eval_max_iter, xtol
         self.num_random_points = num_random_points
-        self.encoder = PointNetEncoder((3, *(scaled_channels(c, width) for c in (64, 128, dim_k))))
+        self.encoder = PointNetEncoder((3, *(scaled(c, width, minimum=MIN_CHANNELS) for c in (64, 128, dim_k))))
 
     def features(self, points: Tensor) -> Tensor:
         return self.encoder(points)[1]

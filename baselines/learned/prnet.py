@@ -40,14 +40,13 @@ from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import (
     DGCNN,
-    MLP,
     AttentionPointer,
     gather_neighbours,
     gumbel_softmax,
     matching_logits,
-    scaled,
     soft_correspondence_svd,
 )
+from baselines.learned.common.layers import MLP, scaled
 from src.geometry import se3_apply
 
 SAMPLERS = ("gumbel_softmax", "softmax")

@@ -46,14 +46,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.learned.common.correspondence import (
-    MLP,
-    estimate_normals,
-    ppf_features,
-    scaled,
-    sinkhorn,
-    soft_correspondence_svd,
-)
+from baselines.learned.common.correspondence import estimate_normals, ppf_features, sinkhorn, soft_correspondence_svd
+from baselines.learned.common.layers import MLP, scaled
 from src.errors import ConfigError, PointCloudError
 from src.geometry import se3_apply
 

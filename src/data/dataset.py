@@ -12,22 +12,13 @@ from torch.utils.data import Dataset, Sampler
 
 from src.data.transforms import CLOUDS, Compose
 from src.errors import ConfigError, PointCloudError
+from src.geometry.clouds import check_cloud
 
 TRAIN_STREAM, EVAL_STREAM = 1, 0
 
 
-def check_point_cloud(points: np.ndarray | torch.Tensor, name: str) -> None:
-    """Raise PointCloudError for wrong shapes, empty clouds and non-finite values."""
-    if points.ndim != 2 or points.shape[-1] != 3:
-        raise PointCloudError(f"{name} must have shape (N, 3), got {tuple(points.shape)}")
-    if points.shape[0] == 0:
-        raise PointCloudError(f"{name} is empty (0 points): check the dataset cache and the crop settings")
-    finite = torch.isfinite(points).all() if isinstance(points, torch.Tensor) else np.isfinite(points).all()
-    if not finite:
-        raise PointCloudError(f"{name} contains NaN or inf values: rebuild the cache with `python -m src.data.prepare`")
-
-
-def _tensor(array: np.ndarray) -> torch.Tensor:
+def float_tensor(array: np.ndarray) -> torch.Tensor:
+    """A sample's array as a contiguous float32 tensor."""
     return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
 
 
@@ -75,10 +66,14 @@ class PairDataset(Dataset):
         kinds = ("points",) if self.normals is None else ("points", "normals")
         item = {f"{kind}_{cloud}": sample[f"{kind}_{cloud}"] for kind in kinds for cloud in CLOUDS}
         for key, array in item.items():
-            check_point_cloud(array, key)
+            try:
+                check_cloud(array, key, allow_degenerate=True)
+            except PointCloudError as err:
+                raise PointCloudError(f"pair {index} (shape {shape}): {err}: check the dataset cache (rebuild it with "
+                                      "`python -m src.data.prepare`) and the crop settings (data.pair)") from None
         return {
-            **{key: _tensor(array) for key, array in item.items()},
-            "transform_gt": torch.from_numpy(sample["transform_gt"].astype(np.float32)),
+            **{key: float_tensor(array) for key, array in item.items()},
+            "transform_gt": float_tensor(sample["transform_gt"]),
             "label": torch.tensor(int(self.labels[shape])),
             "idx": torch.tensor(int(index)),
         }

@@ -4,12 +4,12 @@ learning3d's PointNetLK and PointNetLK-Revisited), optionally on unit-cube shape
 Same interface as :mod:`src.data.transforms` (``transform(sample, rng) -> sample``, per-sample generator).
 
 * :class:`TwistPerturbation` — ``x = a·u/‖u‖`` with ``u ~ N(0, I₆)`` and ``a ~ U[0, magnitude)`` (or ``a =
-  magnitude``), twist order (ω, v) as their ``se3.exp``; the source becomes ``exp(x)·template`` and the
-  ground truth (source → reference) is ``exp(−x)`` (PointNetLK ``ptlk/data/transforms.py`` 145–173
-  ``RandomTransformSE3`` with ``experiments/train_pointlk.py`` 300–304 ``(args.mag = 0.8, True)``;
-  learning3d ``ops/transform_functions.py`` ``PNLKTransform`` 119–138 with ``PNLKTransform(0.8, True)``,
-  ``data_utils/dataloaders.py`` 267–269; PointNetLK-Revisited
-  ``data_utils.py`` ``RandomTransformSE3`` 249–280 with ``--mag 0.8``).
+  magnitude``), twist order (ω, v) as their ``se3.exp`` (:func:`~src.geometry.numpy_rigid.twist_matrix`); the
+  source becomes ``exp(x)·template`` and the ground truth (source → reference) is ``exp(−x)`` (PointNetLK
+  ``ptlk/data/transforms.py`` 145–173 ``RandomTransformSE3`` with ``experiments/train_pointlk.py`` 300–304
+  ``(args.mag = 0.8, True)``; learning3d ``ops/transform_functions.py`` ``PNLKTransform`` 119–138 with
+  ``PNLKTransform(0.8, True)``, ``data_utils/dataloaders.py`` 267–269; PointNetLK-Revisited ``data_utils.py``
+  ``RandomTransformSE3`` 249–280 with ``--mag 0.8``).
 * :class:`UnitCube` — PointNetLK-Revisited's ``OnUnitCube`` (``data_utils.py`` 787–806, ``method2``): the
   shape is divided by the longest side of its bounding box, then centred on its mean; here the
   reference's scale and mean are applied to both clouds (the same shape, so the pair stays rigid).
@@ -25,26 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from src.data.transforms import Compose, GaussianNoise, PickPair, Sample, Shuffle, Transform, _inverse, _move
+from src.data.transforms import Compose, GaussianNoise, PickPair, Sample, Shuffle, Transform, move_cloud
 from src.errors import ConfigError
-
-
-def twist_matrix(twist: np.ndarray) -> np.ndarray:
-    """exp of a twist (ω1, ω2, ω3, v1, v2, v3) → (4, 4): R = exp([ω]×), t = V·v with
-    V = I + (1 − cos θ)/θ²·[ω]× + (θ − sin θ)/θ³·[ω]×² (their ``se3.exp``)."""
-    w, v = np.asarray(twist[:3], dtype=np.float64), np.asarray(twist[3:], dtype=np.float64)
-    theta = float(np.linalg.norm(w))
-    wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-8:
-        left = np.eye(3) + wx / 2
-    else:
-        left = np.eye(3) + (1 - np.cos(theta)) / theta**2 * wx + (theta - np.sin(theta)) / theta**3 * (wx @ wx)
-    transform = np.eye(4)
-    transform[:3, :3] = Rotation.from_rotvec(w).as_matrix()
-    transform[:3, 3] = left @ v
-    return transform
+from src.geometry.numpy_rigid import twist_matrix
 
 
 @dataclass
@@ -61,9 +45,7 @@ class TwistPerturbation:
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         amplitude = rng.uniform(0.0, self.magnitude) if self.random_magnitude else self.magnitude
         direction = rng.standard_normal(6)
-        transform = twist_matrix(direction / np.linalg.norm(direction) * amplitude)
-        _move(sample, "src", transform)  # (its normals too, if the sample has any)
-        sample["transform_gt"] = sample["transform_gt"] @ _inverse(transform)
+        move_cloud(sample, "src", twist_matrix(direction / np.linalg.norm(direction) * amplitude))
         return sample
 
 

@@ -25,10 +25,11 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from src.data.dataset import EVAL_STREAM, check_point_cloud
+from src.data.dataset import EVAL_STREAM, float_tensor
 from src.data.scans import ScanPair, ScanSource, normalise_pair, read_scans, scan_pairs
 from src.data.transforms import Compose, RandomRigidTransform, Resample
 from src.errors import ConfigError, DatasetError
+from src.geometry.clouds import check_cloud
 from src.paths import shared_path
 
 DEFAULT_SOURCE = ("data", "stanford", "stanford_bunny_scans.zip")
@@ -88,11 +89,9 @@ class ScanPairDataset(Dataset):
         rng = np.random.default_rng([self.seed, EVAL_STREAM, int(index)])
         sample = self.transforms({"points_src": src, "points_ref": ref, "transform_gt": transform}, rng)
         for key in ("points_src", "points_ref"):
-            check_point_cloud(sample[key], key)
+            check_cloud(sample[key], key, allow_degenerate=True)
         return {
-            "points_src": torch.from_numpy(np.ascontiguousarray(sample["points_src"], dtype=np.float32)),
-            "points_ref": torch.from_numpy(np.ascontiguousarray(sample["points_ref"], dtype=np.float32)),
-            "transform_gt": torch.from_numpy(sample["transform_gt"].astype(np.float32)),
+            **{key: float_tensor(sample[key]) for key in ("points_src", "points_ref", "transform_gt")},
             "overlap": torch.tensor(pair.overlap),
             "idx": torch.tensor(int(index)),
         }

@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from src.data.readers import Archive
 from src.data.transforms import median_spacing, overlap_fraction
 from src.errors import DatasetError
+from src.geometry.numpy_rigid import apply_transform, inverse_transform, rigid_transform
 
 BMESH_FORMAT = "'bmesh <file> tx ty tz qx qy qz qw'"
 UNIT_QUATERNION_TOL = 1e-3
@@ -88,25 +89,18 @@ class ScanSource:
 # --- poses ---------------------------------------------------------------------------------------
 
 
-def apply_transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ transform[:3, :3].T + transform[:3, 3]
-
-
 def conf_pose(translation: np.ndarray, quaternion: np.ndarray, where: str) -> np.ndarray:
     """Scan → common frame from a ``.conf`` line: rotation R(q)ᵀ (q = qx qy qz qw), then + t."""
     norm = float(np.linalg.norm(quaternion))
     if abs(norm - 1.0) > UNIT_QUATERNION_TOL:
         raise DatasetError(f"{where}: the quaternion (qx qy qz qw) {' '.join(f'{v:g}' for v in quaternion)} "
                            f"has norm {norm:.6g}, not a unit quaternion")
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_quat(quaternion).as_matrix().T
-    pose[:3, 3] = translation
-    return pose
+    return rigid_transform(Rotation.from_quat(quaternion).as_matrix().T, translation)
 
 
 def relative_pose(pose_src: np.ndarray, pose_ref: np.ndarray) -> np.ndarray:
     """Source-scan frame → reference-scan frame, from the two scans' poses."""
-    return np.linalg.inv(pose_ref) @ pose_src
+    return inverse_transform(pose_ref) @ pose_src
 
 
 # --- reading -------------------------------------------------------------------------------------

@@ -22,9 +22,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from src.errors import ConfigError, DatasetError
+from src.geometry.numpy_rigid import apply_transform, euler_transform, inverse_transform
 
 Sample = dict[str, Any]
 Transform = Callable[[Sample, np.random.Generator], Sample]
@@ -36,15 +36,17 @@ PERTURBATIONS = ("euler", "twist")
 CLOUDS = ("src", "ref")
 
 
-def _rigid(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    return (points @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
-
-
-def _move(sample: Sample, cloud: str, transform: np.ndarray) -> None:
-    """Apply a rigid transform to one cloud: its points, and its normals (rotation only) if any."""
-    sample[f"points_{cloud}"] = _rigid(sample[f"points_{cloud}"], transform)
+def move_cloud(sample: Sample, cloud: str, transform: np.ndarray) -> None:
+    """Move one cloud by a rigid transform (its points, and its normals by the rotation if any) and keep
+    ``transform_gt`` mapping source to reference: moving the source composes the transform's inverse on the
+    right, moving the reference composes the transform on the left."""
+    sample[f"points_{cloud}"] = apply_transform(transform, sample[f"points_{cloud}"]).astype(np.float32)
     if f"normals_{cloud}" in sample:
         sample[f"normals_{cloud}"] = (sample[f"normals_{cloud}"] @ transform[:3, :3].T).astype(np.float32)
+    if cloud == "src":
+        sample["transform_gt"] = sample["transform_gt"] @ inverse_transform(transform)
+    else:
+        sample["transform_gt"] = transform @ sample["transform_gt"]
 
 
 def _take(sample: Sample, cloud: str, index: np.ndarray) -> None:
@@ -61,13 +63,6 @@ def _unit(normals: np.ndarray) -> np.ndarray:
     if not np.all(length > 0):
         raise DatasetError("the cache holds zero-length or NaN normals: rebuild it with `python -m src.data.prepare`")
     return normals / length
-
-
-def _inverse(transform: np.ndarray) -> np.ndarray:
-    inv = np.eye(4)
-    inv[:3, :3] = transform[:3, :3].T
-    inv[:3, 3] = -transform[:3, :3].T @ transform[:3, 3]
-    return inv
 
 
 @dataclass
@@ -151,18 +146,10 @@ class RandomRigidTransform:
 
     def sample_transform(self, rng: np.random.Generator) -> np.ndarray:
         angles = rng.uniform(0.0, self.rot_mag, size=3)  # about x, y, z
-        transform = np.eye(4)
-        transform[:3, :3] = Rotation.from_euler("zyx", angles[::-1], degrees=True).as_matrix()  # Rx·Ry·Rz
-        transform[:3, 3] = rng.uniform(-self.trans_mag, self.trans_mag, size=3)
-        return transform
+        return euler_transform(angles[::-1], rng.uniform(-self.trans_mag, self.trans_mag, size=3), "zyx")  # Rx·Ry·Rz
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
-        transform = self.sample_transform(rng)
-        _move(sample, self.apply_to, transform)
-        if self.apply_to == "src":
-            sample["transform_gt"] = sample["transform_gt"] @ _inverse(transform)
-        else:
-            sample["transform_gt"] = transform @ sample["transform_gt"]
+        move_cloud(sample, self.apply_to, self.sample_transform(rng))
         return sample
 
 

@@ -14,7 +14,7 @@
   the template, then ``r = φ(g·source) − φ(template)``, ``Δξ = −J⁺ r``, ``g ← exp(Δξ)·g``, stopped
   when max‖Δξ‖ < xtol (1e-7) or after ``max_iter``. :func:`lk_register` wraps it with the official
   mean-centring of both clouds.
-* :class:`FeatureMetricDecoder` and :func:`chamfer_distance` — FMR's decoder (global feature → points
+* :class:`FeatureMetricDecoder` and :func:`chamfer_loss` — FMR's decoder (global feature → points
   through FC 1024-1024-512-256-3·n with BatchNorm/ReLU and a final tanh) and its Chamfer loss
   (squared distances, mean of each direction, as FMR's code).
 * :func:`gmm_posterior`, :func:`gmm_params` and :func:`gmm_register` — DeepGMR's point-to-component
@@ -40,9 +40,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.learned.common.encoders import SharedMLP, knn_indices
-from baselines.learned.common.procrustes import weighted_procrustes
+from baselines.learned.common.encoders import knn_indices
+from baselines.learned.common.layers import MLP
+from baselines.learned.common.procrustes import kabsch_rotation, weighted_procrustes
 from src.geometry import se3_apply, se3_from_rt
+from src.metrics import chamfer_distance
 
 # ---------------------------------------------------------------------------------------------
 # se(3)
@@ -126,6 +128,16 @@ def full_precision(device: torch.device | str) -> contextlib.AbstractContextMana
 def at_least_fp32(x: Tensor) -> Tensor:
     """``x`` in float32 if it is in a lower precision (float64 stays float64)."""
     return x if x.dtype in (torch.float32, torch.float64) else x.float()
+
+
+def register_lk_delta(module: nn.Module, delta: float, learn: bool) -> None:
+    """``module.delta`` (1, 6): the twist steps δ of :func:`lk_jacobian`, all ``delta``; a parameter if
+    ``learn`` (FMR learns it), else a buffer (PointNetLK)."""
+    step = torch.full((1, 6), float(delta))
+    if learn:
+        module.delta = nn.Parameter(step)
+    else:
+        module.register_buffer("delta", step)
 
 
 def lk_jacobian(feature_fn: FeatureFn, points: Tensor, delta: Tensor, features: Tensor | None = None) -> Tensor:
@@ -213,7 +225,7 @@ def inverse_compositional_lk(
     return LKResult(transforms, residual, previous, iterations, jacobian)
 
 
-def pointnet_jacobian(mlp: SharedMLP, points: Tensor) -> tuple[Tensor, Tensor]:
+def pointnet_jacobian(mlp: MLP, points: Tensor) -> tuple[Tensor, Tensor]:
     """Max-pooled PointNet feature φ(P) (B,K) of ``mlp`` and its analytical Jacobian (B,K,6)
     ∂φ(exp(ξ)·P)/∂ξ at ξ = 0 (the sign convention of :func:`lk_jacobian`).
 
@@ -224,14 +236,14 @@ def pointnet_jacobian(mlp: SharedMLP, points: Tensor) -> tuple[Tensor, Tensor]:
     Jacobian ∂(exp(ξ)p)/∂ξ = [−[p]× | I]. The official code differentiates exp(−ξ)p and updates with
     +J⁺r: the same step. The last layer is evaluated at the winning points only. J is detached (the
     official code builds it from detached weights and masks); φ keeps its graph. ``mlp`` must be
-    Linear / BatchNorm / ReLU triples (a :class:`~baselines.learned.common.encoders.SharedMLP`).
+    Linear / BatchNorm / ReLU triples (a :class:`~baselines.learned.common.layers.MLP` with ``norm="batch"``).
     """
     layers = list(mlp.layers)
     if len(layers) % 3 or not all(
         isinstance(a, nn.Linear) and isinstance(b, nn.BatchNorm1d) and isinstance(c, nn.ReLU)
         for a, b, c in zip(layers[::3], layers[1::3], layers[2::3])
     ):
-        raise ValueError("pointnet_jacobian needs Linear + BatchNorm + ReLU layers (SharedMLP with batch_norm)")
+        raise ValueError("pointnet_jacobian needs Linear + BatchNorm + ReLU layers (an MLP with norm='batch')")
     if any(layer.training for layer in layers[1::3]):
         raise ValueError("pointnet_jacobian needs BatchNorm in eval mode (see eval_mode)")
     x, tangent = points, None  # tangent: ∂x/∂p (B, N, 3, C), per point
@@ -298,11 +310,6 @@ def lk_register(
 # ---------------------------------------------------------------------------------------------
 
 
-def scaled_channels(channels: int, width: float) -> int:
-    """A layer width times the ``width`` multiplier (the framework's ``model_scale``), at least 8."""
-    return max(8, int(round(channels * width)))
-
-
 class FeatureMetricDecoder(nn.Module):
     """FMR's decoder: global feature (B, K) → ``num_points`` points (B, n, 3) in [−1, 1]³.
 
@@ -326,18 +333,13 @@ class FeatureMetricDecoder(nn.Module):
         return torch.tanh(self.out(self.mlp(features))).reshape(-1, self.num_points, 3)
 
 
-def chamfer_distance(a: Tensor, b: Tensor) -> Tensor:
+def chamfer_loss(a: Tensor, b: Tensor) -> Tensor:
     """Chamfer loss of FMR's code: mean over batch and points of the squared distance to the nearest
-    point of the other cloud, summed over both directions. a (B,N,3), b (B,M,3) → scalar, in float32
-    even under autocast."""
+    point of the other cloud, summed over both directions (:func:`src.metrics.chamfer_distance` of
+    squared distances, averaged over the batch). a (B,N,3), b (B,M,3) → scalar, in float32 even under
+    autocast."""
     with full_precision(a.device):
-        return _chamfer(at_least_fp32(a), at_least_fp32(b))
-
-
-def _chamfer(a: Tensor, b: Tensor) -> Tensor:
-    sq = (a * a).sum(-1).unsqueeze(2) + (b * b).sum(-1).unsqueeze(1) - 2 * a @ b.transpose(1, 2)
-    sq = sq.clamp_min(0)
-    return sq.amin(dim=2).mean() + sq.amin(dim=1).mean()
+        return chamfer_distance(at_least_fp32(a), at_least_fp32(b), squared=True).mean()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -382,11 +384,7 @@ def gmm_register(
     c_s = (pi_s.unsqueeze(-1) * mu_s).sum(dim=1)
     c_t = (pi_s.unsqueeze(-1) * mu_t).sum(dim=1)
     cov = (mu_s - c_s.unsqueeze(1)).transpose(1, 2) @ (weights.unsqueeze(-1) * (mu_t - c_t.unsqueeze(1)))
-    u, _, vh = torch.linalg.svd(cov.double())
-    v = vh.transpose(1, 2)
-    sign = torch.sign(torch.linalg.det(v @ u.transpose(1, 2)))
-    fix = torch.diag_embed(torch.stack((torch.ones_like(sign), torch.ones_like(sign), sign), dim=-1))
-    rot = (v @ fix @ u.transpose(1, 2)).to(mu_s.dtype)
+    rot = kabsch_rotation(cov).to(mu_s.dtype)
     return se3_from_rt(rot, c_t - (rot @ c_s.unsqueeze(-1)).squeeze(-1))
 
 

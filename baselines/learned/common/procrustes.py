@@ -19,10 +19,17 @@ def weighted_procrustes(src: Tensor, tgt: Tensor, weights: Tensor | None = None,
     w = weights.unsqueeze(-1) / (weights.sum(dim=1, keepdim=True).unsqueeze(-1) + eps)
     src_mean, tgt_mean = (w * src).sum(dim=1), (w * tgt).sum(dim=1)
     cov = (src - src_mean.unsqueeze(1)).transpose(1, 2) @ (w * (tgt - tgt_mean.unsqueeze(1)))
+    rot = kabsch_rotation(cov).to(src.dtype)
+    trans = tgt_mean - (rot @ src_mean.unsqueeze(-1)).squeeze(-1)
+    return se3_from_rt(rot, trans)
+
+
+def kabsch_rotation(cov: Tensor) -> Tensor:
+    """The rotation (B,3,3), float64, best aligning centred source to target points given their
+    cross-covariance ``cov`` (B,3,3) = Σ w·s·tᵀ: V·diag(1, 1, ±1)·Uᵀ from the SVD U·S·Vᵀ of cov, the sign
+    that of det(V·Uᵀ), so that it is never a reflection."""
     u, _, vh = torch.linalg.svd(cov.double())
     v = vh.transpose(1, 2)
     sign = torch.sign(torch.linalg.det(v @ u.transpose(1, 2)))
     fix = torch.diag_embed(torch.stack((torch.ones_like(sign), torch.ones_like(sign), sign), dim=-1))
-    rot = (v @ fix @ u.transpose(1, 2)).to(src.dtype)
-    trans = tgt_mean - (rot @ src_mean.unsqueeze(-1)).squeeze(-1)
-    return se3_from_rt(rot, trans)
+    return v @ fix @ u.transpose(1, 2)
