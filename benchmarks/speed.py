@@ -28,21 +28,32 @@ pairs per second. ``--compile default|reduce-overhead|max-autotune`` wraps the n
 ``torch.compile`` (``reduce-overhead`` uses CUDA graphs on a GPU), ``--precision bf16`` runs it under
 bf16 autocast (OMNet keeps its poses in float32); compilation happens during the warm-up.
 
+Distance to the machine's limit. For learned networks, the matrix-product FLOPs of one call are counted
+(:class:`torch.utils.flop_counter.FlopCounterMode`, in an extra untimed call on the first timed input) and
+divided by the median time; after every timed call one ``torch.mm`` of 4096×1024 by 1024×1024 (in the
+network's precision) is timed too, and ``% of mm`` is the median over the timed calls of the network's rate
+over the adjacent product's, so that a busy machine slows both alike. ``--clock cpu`` times with the process's
+CPU time instead of the wall clock (``--threads 1`` on a shared CPU: time spent waiting for a core is not counted).
+
 Outputs (``--out``, default ``outputs/speed``): ``speed.csv`` (one row per method × device × size:
 ``points, batch, method, method_id, device, weights, ms_per_pair, ms_p25, ms_p75, pairs_per_s, runs,
-note``) and ``speed.md`` (one batch-1 table per device and, with batch sizes > 1, a throughput table; the device and the machine in its header; with ``--paper``,
-default on when the paper's CSV is found, the paper's own table below for reference).
+gflop_per_call, gflop_per_s, mm_gflop_per_s, pct_of_mm, note``) and ``speed.md`` (one batch-1 table per device
+and, with batch sizes > 1, a throughput table, and for networks the distance to the limit; the device and the
+machine in its header; with ``--paper``, default on when the paper's CSV is found, the paper's own table below
+for reference).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import platform
 import statistics
 import sys
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +96,47 @@ def make_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return src.astype(np.float32).astype(np.float64), ref.astype(np.float32).astype(np.float64)
 
 
+# --- distance to the machine's limit -------------------------------------------------------------------
+
+MM_REFERENCE = (4096, 1024, 1024)  # the reference product: (M, K) by (K, N)
+CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
+
+
+class MatmulReference:
+    """The machine's matrix-product rate: GFLOP/s of ``torch.mm`` of MM_REFERENCE (several per timing on a GPU)."""
+
+    def __init__(self, device: str, dtype: Any = None, clock: str = "wall") -> None:
+        import torch
+
+        m, k, n = MM_REFERENCE
+        generator = torch.Generator().manual_seed(0)
+        self.a = torch.randn(m, k, generator=generator).to(device, dtype or torch.float32)
+        self.b = torch.randn(k, n, generator=generator).to(device, dtype or torch.float32)
+        self.repeats = 1 if device == "cpu" else 20
+        self.sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+        self.clock = CLOCKS[clock]
+        self.rate()  # warm-up
+
+    def rate(self) -> float:
+        import torch
+
+        self.sync()
+        start = self.clock()
+        for _ in range(self.repeats):
+            torch.mm(self.a, self.b)
+        self.sync()
+        return 2.0 * math.prod(MM_REFERENCE) * self.repeats / (self.clock() - start) / 1e9
+
+
+def count_flops(call: Callable[[], Any]) -> int:
+    """Matrix-product FLOPs of one ``call()`` (:class:`torch.utils.flop_counter.FlopCounterMode`)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        call()
+    return counter.get_total_flops()
+
+
 # --- timing ------------------------------------------------------------------------------------------
 
 
@@ -98,34 +150,45 @@ class Timing:
     times_ms: list[float]  # per call of ``batch`` pairs
     note: str = ""
     batch: int = 1
+    flops: int = 0  # matrix-product FLOPs of one call (0: not counted)
+    mm_rates: list[float] = field(default_factory=list)  # GFLOP/s of the reference product after each timed call
 
     def row(self) -> dict[str, Any]:
         per_pair = [t / self.batch for t in self.times_ms]
         q = np.percentile(per_pair, [25, 75]) if per_pair else [np.nan, np.nan]
         median = statistics.median(per_pair) if per_pair else np.nan
+        counted = bool(self.flops and self.mm_rates)
+        rates = [self.flops / t / 1e6 for t in self.times_ms] if counted else []
         return {
             "points": self.points, "batch": self.batch, "method": self.label, "method_id": self.method,
             "device": self.device, "weights": self.weights, "ms_per_pair": median,
             "ms_p25": float(q[0]), "ms_p75": float(q[1]), "pairs_per_s": 1000.0 / median if per_pair else np.nan,
-            "runs": len(per_pair), "note": self.note,
+            "runs": len(per_pair), "gflop_per_call": self.flops / 1e9 if counted else np.nan,
+            "gflop_per_s": self.flops / statistics.median(self.times_ms) / 1e6 if counted else np.nan,
+            "mm_gflop_per_s": statistics.median(self.mm_rates) if counted else np.nan,
+            "pct_of_mm": 100 * statistics.median(r / m for r, m in zip(rates, self.mm_rates)) if counted else np.nan,
+            "note": self.note,
         }
 
 
 def time_method(
     registrator: Registrator, sizes: list[int], repeats: int, warmup: int, max_seconds: float | None,
     label: str, device: str, weights: str, progress: bool = True, batch: int = 1,
+    reference: MatmulReference | None = None, clock: str = "wall",
 ) -> list[Timing]:
     """Median-ready timings (ms) of ``registrator.register`` (``register_batch`` of ``batch`` stacked
     pairs when ``batch > 1``) at each size; a size that fails is recorded with no times and the
-    reason, and larger sizes are still tried."""
+    reason, and larger sizes are still tried. With a ``reference``, the FLOPs of a call are counted and
+    the reference product is timed after each timed call."""
     from tqdm.auto import tqdm
 
     registrator.setup()
     sync = getattr(registrator, "synchronize", lambda: None)
+    now = CLOCKS[clock]
     out = []
     for n in sizes:
         times: list[float] = []
-        note = ""
+        timing = Timing(registrator.name, label, device, weights, n, times, "", batch)
         inputs = [make_pair(n, seed) for seed in range(warmup + repeats)]
         if batch > 1:  # each call: `batch` pairs (the sampled pairs repeated to fill it)
             inputs = [tuple(np.stack([inputs[(k + j) % len(inputs)][i] for j in range(batch)]) for i in (0, 1))
@@ -136,25 +199,29 @@ def time_method(
                    leave=False)
         try:
             for k, (src, ref) in enumerate(inputs):
+                if k == warmup and reference is not None:
+                    timing.flops = count_flops(lambda: register(src, ref))  # noqa: B023 - called at once
                 sync()
-                start = time.perf_counter()
+                start = now()
                 register(src, ref)
                 sync()
-                elapsed = (time.perf_counter() - start) * 1000.0
+                elapsed = (now() - start) * 1000.0
                 bar.update(1)
                 if k >= warmup:
                     times.append(elapsed)
+                    if reference is not None:
+                        timing.mm_rates.append(reference.rate())
                     if max_seconds is not None and time.perf_counter() - started > max_seconds:
-                        note = f"stopped after {len(times)} timed runs (--max-seconds {max_seconds:g})"
+                        timing.note = f"stopped after {len(times)} timed runs (--max-seconds {max_seconds:g})"
                         break
         except Exception as exc:  # noqa: BLE001 - e.g. out of memory: record and go on
             lines = str(exc).strip().splitlines()
-            note = f"failed: {type(exc).__name__}: {lines[0] if lines else ''}".strip()
-            times = []
+            timing.note = f"failed: {type(exc).__name__}: {lines[0] if lines else ''}".strip()
+            times.clear()
             _free_cuda()
         finally:
             bar.close()
-        out.append(Timing(registrator.name, label, device, weights, n, times, note, batch))
+        out.append(timing)
     return out
 
 
@@ -272,6 +339,29 @@ def throughput_table(frame: pd.DataFrame, device: str, header: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def limit_table(frame: pd.DataFrame, device: str, header: str) -> str:
+    """Learned networks: matrix-product GFLOP/s and % of the reference ``torch.mm``'s, rows = points."""
+    part = frame[(frame["device"] == device) & frame["gflop_per_s"].notna()]
+    if part.empty:
+        return ""
+    m, k, n = MM_REFERENCE
+    columns = list(dict.fromkeys(zip(part["method"], part["batch"])))
+    lines = [f"**Distance to the limit (matrix-product GFLOP/s and % of the rate of a torch.mm of {m}×{k} by {k}×{n} "
+             f"timed after each call) — {header}**", "",
+             "| # points | " + " | ".join(f"{method} B={batch}" for method, batch in columns) + " |",
+             "|---:|" + "---:|" * len(columns)]
+    for points in sorted(part["points"].unique()):
+        cells = []
+        for method, batch in columns:
+            hit = part[(part["points"] == points) & (part["method"] == method) & (part["batch"] == batch)]
+            cells.append(f"{hit['gflop_per_s'].iloc[0]:.1f} ({hit['pct_of_mm'].iloc[0]:.0f} %)" if len(hit) else "-")
+        lines.append(f"| {points} | " + " | ".join(cells) + " |")
+    mm = part["mm_gflop_per_s"]
+    lines += ["", f"- torch.mm: {mm.min():.1f}–{mm.max():.1f} GFLOP/s (median per cell); % of mm: median over the timed "
+              "calls of the call's rate over the next product's; FLOPs counted with FlopCounterMode"]
+    return "\n".join(lines) + "\n"
+
+
 def paper_table(paper_dir: Path | None = None) -> str:
     """The paper's own speed table (from its CSV), for reference."""
     from benchmarks.paper import default_paper_dir
@@ -307,12 +397,19 @@ def default_methods() -> list[str]:
 
 
 def build(method: str, device: str, checkpoints: dict[str, str], model_scale: float) -> tuple[Registrator, str]:
-    """The registrator and its weights label (``trained`` / ``untrained`` / ``none``)."""
+    """The registrator and its weights label (``trained`` / ``untrained`` / ``none``). Fresh weights are drawn
+    from seed 0, so that runs (and versions of the code) time the same network: OMNet's work depends on its
+    masks, hence on its weights."""
+    import torch
+
     if method not in _learned():
         return get_registrator(method), "none"
     if method in checkpoints:
         return get_registrator(method, checkpoint=checkpoints[method], device=device), "trained"
-    return get_registrator(method, fresh_weights=True, model_scale=model_scale, device=device), "untrained"
+    registrator = get_registrator(method, fresh_weights=True, model_scale=model_scale, device=device)
+    torch.manual_seed(0)
+    registrator.setup()  # builds the network now, from the seed
+    return registrator, "untrained"
 
 
 def accelerate(registrator: Registrator, compile_mode: str, precision: str) -> str:
@@ -368,7 +465,10 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
             raise ConfigError(f"--devices takes cpu and/or cuda, got {device!r}")
         if device == "cuda" and not torch.cuda.is_available():
             raise ConfigError("--devices cuda: CUDA is not available on this machine")
+    if args.clock == "cpu" and "cuda" in devices:
+        raise ConfigError("--clock cpu times the CPU only; use the wall clock with --devices cuda")
     checkpoints = _parse_checkpoints(args.checkpoint or [])
+    references: dict[str, MatmulReference] = {}
     timings: list[Timing] = []
     for method in methods:
         learned = method in _learned()
@@ -381,11 +481,17 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
                 print(f"note: skipping {method}: {err}", file=sys.stderr)
                 break
             label = getattr(registrator, "label", display_name(method))
+            reference = None
             if learned:
                 label += accelerate(registrator, args.compile, args.precision)
+                if device not in references:
+                    dtype = torch.bfloat16 if args.precision == "bf16" else torch.float32
+                    references[device] = MatmulReference(device, dtype, args.clock)
+                reference = references[device]
             for batch in batch_sizes if learned else [1]:
                 timings += time_method(registrator, sizes, args.repeats, args.warmup, args.max_seconds, label,
-                                       device, weights, progress=not args.no_progress, batch=batch)
+                                       device, weights, progress=not args.no_progress, batch=batch,
+                                       reference=reference, clock=args.clock)
             del registrator
             _free_cuda()
     frame = pd.DataFrame([t.row() for t in timings])
@@ -400,6 +506,11 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         throughput = throughput_table(frame, device, describe_device(device))
         if throughput:
             parts.append(throughput)
+        limit = limit_table(frame, device, describe_device(device))
+        if limit:
+            parts.append(limit)
+    if args.clock == "cpu":
+        parts.append("Times are the process's CPU time (`--clock cpu`), not the wall clock.\n")
     if args.paper:
         reference = paper_table(args.paper_dir)
         if reference:
@@ -427,6 +538,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model-scale", type=float, default=1.0, help="width of untrained networks (default 1.0 = the paper's)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--max-seconds", type=float, default=None, help="stop timing a cell after this many seconds (>= 1 timed run)")
+    parser.add_argument("--clock", default="wall", choices=tuple(CLOCKS),
+                        help="wall clock, or the process's CPU time (all its threads; CPU only: waiting for a busy core not counted)")
     parser.add_argument("--out", default="outputs/speed", help="output folder (default outputs/speed)")
     parser.add_argument("--paper", action=argparse.BooleanOptionalAction, default=True, help="append the paper's table (default on)")
     parser.add_argument("--paper-dir", type=Path, default=None, help="folder of the paper's CSVs")

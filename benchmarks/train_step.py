@@ -11,6 +11,12 @@ timed), and Adam; ``--warmup`` steps (which include compilation) are not timed, 
 ``--steps`` steps, each synchronised with the device, is reported in ms, with pairs per second.
 The math is the same in every configuration; bf16 runs under autocast (OMNet keeps poses in float32).
 
+Distance to the machine's limit: the matrix-product FLOPs of a step (forward, loss, backward) are counted
+with :class:`torch.utils.flop_counter.FlopCounterMode` in an extra untimed step, and after every timed step
+one ``torch.mm`` of 4096×1024 by 1024×1024 (in the step's precision) is timed; ``% of mm`` is the median over
+the timed steps of the step's rate over the adjacent product's (:mod:`benchmarks.speed`). ``--clock cpu``
+times with the process's CPU time (``--threads 1`` on a shared CPU).
+
 Outputs (``--out``, default ``outputs/train_step``): ``train_step.csv`` and ``train_step.md``.
 """
 
@@ -20,14 +26,13 @@ import argparse
 import itertools
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
 
-from benchmarks.speed import describe_device, format_rate
+from benchmarks.speed import CLOCKS, MatmulReference, count_flops, describe_device, format_rate
 from src.errors import ConfigError, exit_code_of
 
 
@@ -54,28 +59,39 @@ def build_network(model: str, model_scale: float, overrides: list[str]) -> torch
 
 
 def time_steps(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str, steps: int,
-               warmup: int) -> list[float]:
-    """Milliseconds of each timed training step."""
+               warmup: int, reference: MatmulReference | None = None, clock: str = "wall") -> tuple[list[float], int, list[float]]:
+    """Milliseconds of each timed training step; with a ``reference``, also the matrix-product FLOPs of a step
+    (counted in an extra step after the warm-up) and the reference product's GFLOP/s after each timed step."""
     device = batch["points_src"].device
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    times = []
-    for k in range(warmup + steps):
-        sync()
-        start = time.perf_counter()
+    now = CLOCKS[clock]
+
+    def step() -> torch.Tensor:
         optimizer.zero_grad(set_to_none=True)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
             outputs = network(batch["points_src"], batch["points_ref"], batch["transform_gt"])
             loss = network.loss(outputs, batch["transform_gt"])["loss"]
         loss.backward()
         optimizer.step()
+        return loss
+
+    times, flops, mm_rates = [], 0, []
+    for k in range(warmup + steps):
+        if k == warmup and reference is not None:
+            flops = count_flops(step)
+        sync()
+        start = now()
+        loss = step()
         sync()
         if k >= warmup:
-            times.append((time.perf_counter() - start) * 1000.0)
+            times.append((now() - start) * 1000.0)
+            if reference is not None:
+                mm_rates.append(reference.rate())
     bad = [name for name, p in network.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
     if not np.isfinite(loss.item()) or bad:
         raise FloatingPointError(f"non-finite loss ({loss.item():.4g}) or gradients ({len(bad)} tensors) under {precision}")
-    return times
+    return times, flops, mm_rates
 
 
 def run(args: argparse.Namespace) -> pd.DataFrame:
@@ -92,6 +108,11 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         unknown = [v for v in values if v not in allowed]
         if unknown:
             raise ConfigError(f"unknown {name} {unknown[0]!r}: choose from {', '.join(allowed)}")
+    if args.clock == "cpu" and device.type == "cuda":
+        raise ConfigError("--clock cpu times the CPU only; use the wall clock with --device cuda")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    references = {p: MatmulReference(device.type, torch.bfloat16 if p == "bf16" else torch.float32, args.clock) for p in precisions}
     for points, precision, compile_mode in itertools.product(points_list, precisions, compile_modes):
         torch.manual_seed(0)
         network = build_network(args.model, args.model_scale, args.model_overrides).to(device).train()
@@ -101,16 +122,25 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         batch = pair_batch(args.batch, points, device)
         note = ""
         try:
-            times = time_steps(step_network, batch, precision, args.steps, args.warmup)
-        except (FloatingPointError, RuntimeError) as err:  # non-finite training, compilation failure, out of memory
-            times, note = [], f"failed: {type(err).__name__}: {str(err).strip().splitlines()[0]}"
+            times, flops, mm_rates = time_steps(step_network, batch, precision, args.steps, args.warmup,
+                                                references[precision], args.clock)
+        # non-finite training, compilation failure, out of memory, or a batch of one pair (BatchNorm cannot train on it)
+        except (FloatingPointError, RuntimeError, ValueError) as err:
+            times, flops, mm_rates = [], 0, []
+            note = f"failed: {type(err).__name__}: {str(err).strip().splitlines()[0]}"
         median = statistics.median(times) if times else float("nan")
+        rates = [flops / t / 1e6 for t in times]
         rows.append({"model": args.model, "model_scale": args.model_scale, "points": points, "batch": args.batch,
                      "precision": precision, "compile": compile_mode, "device": device.type,
                      "ms_per_step": median, "ms_min": min(times, default=float("nan")),
                      "pairs_per_s": args.batch * 1000.0 / median, "steps": len(times),
+                     "gflop_per_step": flops / 1e9 if times else float("nan"),
+                     "gflop_per_s": flops / median / 1e6 if times else float("nan"),
+                     "mm_gflop_per_s": statistics.median(mm_rates) if times else float("nan"),
+                     "pct_of_mm": 100 * statistics.median(r / m for r, m in zip(rates, mm_rates)) if times else float("nan"),
                      "parameters": sum(p.numel() for p in network.parameters()), "note": note})
-        print(f"{points} points, {precision}, compile={compile_mode}: {median:.1f} ms/step {note}", flush=True)
+        print(f"{points} points, {precision}, compile={compile_mode}: {median:.1f} ms/step "
+              f"{rows[-1]['gflop_per_s']:.1f} GFLOP/s ({rows[-1]['pct_of_mm']:.0f} % of mm) {note}", flush=True)
         del network, step_network, batch
         if device.type == "cuda":
             torch.cuda.empty_cache()
@@ -128,18 +158,23 @@ def markdown_table(frame: pd.DataFrame, device: str, args: argparse.Namespace) -
     eager = frame[(frame["precision"] == "fp32") & (frame["compile"] == "none")].set_index("points")["ms_per_step"]
     lines = [f"**Training step of {args.model} (width {args.model_scale}, {int(frame['parameters'].iloc[0]):,} "
              f"parameters), batch {args.batch} — {device}**", "",
-             "| # points | precision | compile | ms/step (median) | pairs/s | vs eager fp32 |", "|---:|---|---|---:|---:|---:|"]
+             "| # points | precision | compile | ms/step (median) | pairs/s | vs eager fp32 | GFLOP/s | % of mm |",
+             "|---:|---|---|---:|---:|---:|---:|---:|"]
     for _, row in frame.iterrows():
         if row["note"]:
-            lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['note']} | - | - |")
+            lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['note']} | - | - | - | - |")
             continue
         ratio = eager.get(row["points"])
         speedup = f"{ratio / row['ms_per_step']:.2f}×" if ratio is not None and np.isfinite(ratio) else "-"
         lines.append(f"| {row['points']} | {row['precision']} | {row['compile']} | {row['ms_per_step']:.1f} | "
-                     f"{format_rate(row['pairs_per_s'])} | {speedup} |")
-    timed = frame.loc[frame["steps"] > 0, "steps"]
-    lines += ["", f"- median of {int(timed.min()) if len(timed) else 0} timed steps after {args.warmup} warm-up steps; "
-              f"fresh weights; one fixed batch on the device (data loading not timed)",
+                     f"{format_rate(row['pairs_per_s'])} | {speedup} | {row['gflop_per_s']:.1f} | {row['pct_of_mm']:.0f} |")
+    timed = frame.loc[frame["steps"] > 0]
+    lines += ["", f"- median of {int(timed['steps'].min()) if len(timed) else 0} timed steps after {args.warmup} warm-up steps; "
+              f"fresh weights; one fixed batch on the device (data loading not timed)" + ("; process CPU time" if args.clock == "cpu" else ""),
+              f"- GFLOP/s: matrix-product FLOPs of a step ({', '.join(f'{g:.1f}' for g in timed['gflop_per_step'].unique())} GFLOP, "
+              f"FlopCounterMode) over the median time; % of mm: median over the timed steps of the step's rate over that of "
+              f"a torch.mm of 4096×1024 by 1024×1024 timed after it "
+              f"({timed['mm_gflop_per_s'].min():.1f}–{timed['mm_gflop_per_s'].max():.1f} GFLOP/s)" if len(timed) else "- no step timed",
               f"- command: `python -m benchmarks.train_step {' '.join(sys.argv[1:])}`"]
     return "\n".join(lines) + "\n"
 
@@ -158,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--tf32", action=argparse.BooleanOptionalAction, default=False,
                         help="allow TF32 matmuls in fp32 on the GPU (changes fp32 rounding; default off)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--clock", default="wall", choices=tuple(CLOCKS),
+                        help="wall clock, or the process's CPU time (CPU only: waiting for a busy core not counted)")
     parser.add_argument("--out", default="outputs/train_step", help="output folder")
     args = parser.parse_args(argv)
     return exit_code_of(lambda: run(args))

@@ -52,3 +52,26 @@ def test_batched_throughput_table_for_a_network(tmp_path):
     markdown = (tmp_path / "speed.md").read_text()
     assert "| # points | toy | OMNet [bf16]† |" in markdown
     assert "**Throughput (pairs per second)" in markdown and "OMNet (untrained) [bf16] B=4" in markdown
+    network = frame[frame["method_id"] == "omnet"]
+    assert (network["gflop_per_call"] > 0).all() and (network["pct_of_mm"] > 0).all() and (network["mm_gflop_per_s"] > 0).all()
+    assert frame.loc[frame["method_id"] == "toy", "gflop_per_s"].isna().all()  # no network: no FLOPs counted
+    assert "**Distance to the limit" in markdown and " %) |" in markdown
+
+
+def test_flops_are_the_matrix_products_of_a_call():
+    import torch
+
+    x, w = torch.randn(5, 7), torch.randn(3, 7)
+    assert speed.count_flops(lambda: torch.nn.functional.linear(x, w)) == 2 * 5 * 7 * 3
+    assert speed.count_flops(lambda: x.relu()) == 0
+    assert speed.MatmulReference("cpu", clock="cpu").rate() > 0
+
+
+def test_batch_flops_scale_with_the_batch(tmp_path):
+    code = speed.main(["--methods", "omnet", "--sizes", "32", "--batch-sizes", "1,3", "--repeats", "1", "--warmup", "0",
+                       "--devices", "cpu", "--model-scale", "0.0625", "--clock", "cpu", "--out", str(tmp_path),
+                       "--no-progress", "--no-paper"])
+    assert code == 0
+    flops = pd.read_csv(tmp_path / "speed.csv").set_index("batch")["gflop_per_call"]
+    assert abs(flops[3] - 3 * flops[1]) < 0.05 * flops[3]  # untrained: every point kept (masks all ones)
+    assert "process's CPU time" in (tmp_path / "speed.md").read_text()

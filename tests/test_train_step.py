@@ -12,8 +12,11 @@ def test_train_step_table(tmp_path, capsys):
     frame = pd.read_csv(tmp_path / "train_step.csv")
     assert list(zip(frame["points"], frame["precision"])) == [(48, "fp32"), (48, "bf16"), (64, "fp32"), (64, "bf16")]
     assert (frame["ms_per_step"] > 0).all() and (frame["steps"] == 2).all()
+    assert (frame["gflop_per_step"] > 0).all() and (frame["pct_of_mm"] > 0).all()
+    assert frame.loc[2, "gflop_per_step"] > frame.loc[0, "gflop_per_step"]  # 64 points: more products than 48
     markdown = (tmp_path / "train_step.md").read_text()
     assert "| 48 | fp32 | none |" in markdown and "1.00×" in markdown and "batch 2 — CPU:" in markdown
+    assert "| GFLOP/s | % of mm |" in markdown
     assert main(["--device", "cpu", "--precisions", "fp16", "--out", str(tmp_path)]) == 2
     assert "unknown precision 'fp16'" in capsys.readouterr().err
 
@@ -33,10 +36,10 @@ def test_a_failing_configuration_is_recorded_not_fatal(tmp_path, monkeypatch):
 
     real = train_step.time_steps
 
-    def flaky(network, batch, precision, steps, warmup):
+    def flaky(network, batch, precision, *args):
         if precision == "bf16":
             raise FloatingPointError("non-finite loss (nan) or gradients (3 tensors) under bf16")
-        return real(network, batch, precision, steps, warmup)
+        return real(network, batch, precision, *args)
 
     monkeypatch.setattr(train_step, "time_steps", flaky)
     assert main(["--device", "cpu", "--batch", "2", "--points", "48", "--model-scale", "0.0625", "--steps", "1",

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import AttentionPointer, DGCNN, matching_logits, soft_correspondence_svd
-from baselines.learned.common.layers import scaled
+from src.models.base import scaled
 
 
 class DCP(nn.Module):

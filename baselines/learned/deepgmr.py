@@ -43,8 +43,9 @@ from baselines.learned.common.global_feature import (
     gmm_register,
     rri_features,
 )
-from baselines.learned.common.layers import MIN_CHANNELS, MLP, scaled
+from baselines.learned.common.layers import MLP
 from src.geometry import se3_inverse
+from src.models.base import MIN_CHANNELS, scaled
 
 
 class DeepGMRBackbone(nn.Module):

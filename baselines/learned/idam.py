@@ -45,9 +45,10 @@ from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import EdgeConv, gather_neighbours
 from baselines.learned.common.encoders import knn_indices
-from baselines.learned.common.layers import MLP, scaled
+from baselines.learned.common.layers import MLP
 from baselines.learned.common.procrustes import weighted_procrustes
 from src.geometry import se3_apply
+from src.models.base import scaled
 
 
 def _gather(x: Tensor, idx: Tensor) -> Tensor:

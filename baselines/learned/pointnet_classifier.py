@@ -32,8 +32,9 @@ from torch import Tensor, nn
 from torchmetrics import MeanMetric
 
 from baselines.learned.common.encoders import PointNetEncoder
-from baselines.learned.common.layers import MIN_CHANNELS, scaled
+
 from baselines.learned.pointnetlk import pointnet_channels
+from src.models.base import MIN_CHANNELS, scaled
 
 
 class PointNetClassifier(nn.Module):

@@ -57,8 +57,9 @@ from baselines.learned.common.global_feature import (
     lk_register,
     register_lk_delta,
 )
-from baselines.learned.common.layers import MIN_CHANNELS, scaled
+
 from src.geometry import se3_inverse
+from src.models.base import MIN_CHANNELS, scaled
 
 
 def learning3d_reported_transform(transform: Tensor, points_src: Tensor, points_ref: Tensor) -> Tensor:

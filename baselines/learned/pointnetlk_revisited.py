@@ -50,8 +50,9 @@ from baselines.learned.common.global_feature import (
     lk_register,
     pointnet_jacobian,
 )
-from baselines.learned.common.layers import MIN_CHANNELS, scaled
+
 from src.geometry import se3_inverse
+from src.models.base import MIN_CHANNELS, scaled
 
 
 def random_points(points: Tensor, count: int) -> Tensor:

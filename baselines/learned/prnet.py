@@ -46,8 +46,9 @@ from baselines.learned.common.correspondence import (
     matching_logits,
     soft_correspondence_svd,
 )
-from baselines.learned.common.layers import MLP, scaled
+from baselines.learned.common.layers import MLP
 from src.geometry import se3_apply
+from src.models.base import scaled
 
 SAMPLERS = ("gumbel_softmax", "softmax")
 

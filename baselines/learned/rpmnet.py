@@ -47,9 +47,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import estimate_normals, ppf_features, sinkhorn, soft_correspondence_svd
-from baselines.learned.common.layers import MLP, scaled
+from baselines.learned.common.layers import MLP
 from src.errors import ConfigError, PointCloudError
 from src.geometry import se3_apply
+from src.models.base import scaled
 
 FEATURES = ("xyz", "dxyz", "ppf")  # the official concatenation order
 FEATURE_SIZES = {"xyz": 3, "dxyz": 3, "ppf": 4}

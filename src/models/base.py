@@ -30,6 +30,17 @@ class RegistrationNetwork(Protocol):
     def loss(self, outputs: dict, transform_gt: Tensor) -> dict[str, Tensor]: ...
 
 
+#: Fewest channels of a width-scaled layer of OMNet and the global-feature networks (PointNetLK, FMR,
+#: DeepGMR, PointNet).
+MIN_CHANNELS = 8
+
+
+def scaled(channels: int, width: float, multiple: int = 1, minimum: int = 1) -> int:
+    """``channels × width`` rounded to a multiple of ``multiple``, at least ``multiple`` and ``minimum``
+    (channel-width scaling, ``model_scale``; ``width`` = 1 keeps the paper's network)."""
+    return max(minimum, multiple, int(round(channels * width / multiple)) * multiple)
+
+
 def check_network(network: object, target: str) -> RegistrationNetwork:
     """``network`` (built from ``model.network._target_`` = ``target``) if it has both methods,
     else a ConfigError naming the missing ones."""

@@ -4,7 +4,7 @@ Features are (..., C): points and per-point features (B, N, C), per-edge (neighb
 (B, N, k, C). 1×1 convolutions of the official codes are written as ``nn.Linear`` on the last dimension
 (the same function, faster on a CPU).
 
-* :func:`scaled` — a layer's channel count under the width multiplier (the framework's ``model_scale``).
+* :func:`~src.models.base.scaled` — a layer's channel count under the width multiplier (``model_scale``).
 * :class:`BatchNormLast`, :class:`GroupNormLast` — BatchNorm / GroupNorm of (..., C) features.
 * :class:`MLP` — per-element Linear (+ BatchNorm / GroupNorm) + (Leaky)ReLU layers on (..., C): PointNet's
   shared MLP, DGCNN's edge MLPs (any number of leading dimensions), GroupNorm (RPMNet), LeakyReLU (PRNet)
@@ -20,14 +20,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 NORMS = ("batch", "group", "none")
-#: Fewest channels of a width-scaled layer of the global-feature networks (PointNetLK, FMR, DeepGMR, PointNet).
-MIN_CHANNELS = 8
-
-
-def scaled(channels: int, width: float, multiple: int = 1, minimum: int = 1) -> int:
-    """``channels × width`` rounded to a multiple of ``multiple``, at least ``multiple`` and ``minimum``
-    (channel-width scaling; ``width`` = 1 keeps the paper's network)."""
-    return max(minimum, multiple, int(round(channels * width / multiple)) * multiple)
 
 
 class BatchNormLast(nn.BatchNorm1d):
