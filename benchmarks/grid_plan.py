@@ -44,7 +44,7 @@ GRID_FORMAT = 1
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SAMPLINGS = ("os", "ts")
 PARTIALS = ("prnet", "rpmnet", "none")
-_LOADER_KEYS = ("batch_size", "eval_batch_size", "num_workers", "pin_memory", "persistent_workers", "cache_root", "_target_")
+LOADER_KEYS = ("batch_size", "eval_batch_size", "num_workers", "pin_memory", "persistent_workers", "cache_root", "_target_")
 
 # The app's primary config only pulls in conf/benchmark/default.yaml, so that `+benchmark=<name>`
 # (conf/benchmark/<name>.yaml, package `benchmark`) can be appended on the command line.
@@ -161,7 +161,7 @@ def build_test_set(experiment: str, sampling: str, partial: str, data: str | Non
     if "test" not in datamodule.datasets:
         raise ConfigError(f"experiment {experiment} has no test split (data.splits.test)")
     data_cfg = OmegaConf.to_container(cfg.data, resolve=True)
-    definition = {k: v for k, v in data_cfg.items() if k not in _LOADER_KEYS}
+    definition = {k: v for k, v in data_cfg.items() if k not in LOADER_KEYS}
     if "splits" in data_cfg:  # a cache datamodule: of its splits only the test split defines the test set
         definition["splits"] = {"test": data_cfg["splits"]["test"]}
     definition["content_hash"] = datamodule.cache.manifest.get("content_hash")

@@ -67,7 +67,7 @@ def _overrides(run_dir: Path) -> list[str] | None:
     return yaml.safe_load(path.read_text()) if path.is_file() else None
 
 
-def _experiment(run_dir: Path, results: dict[str, Any]) -> str:
+def run_experiment(run_dir: Path, results: dict[str, Any]) -> str:
     """The ``+exp=<name>`` the run was composed with (its task_name may be a label), else the task."""
     for item in _overrides(run_dir) or []:
         if item.startswith(("+exp=", "exp=")):
@@ -96,7 +96,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
         "size_mb": round(target.stat().st_size / 2**20, 2),
         "note": note,
         "experiment": {k: results[k] for k in IDENTITY_KEYS} | {
-            "task": _experiment(run_dir, results), "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
+            "task": run_experiment(run_dir, results), "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
         "network": network,
         "parameters": sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters()),
         "training": {
