@@ -9,7 +9,7 @@ run logs its cumulative CPU time (``src.callbacks.TrainingClock``, in every run'
 Error(R) against CPU hours.
 
     python -m benchmarks.cpu_recipes run --root RUNS [--recipes base,width_0.5] [--budget-min 30] [--parallel 1]
-    python -m benchmarks.cpu_recipes report --root RUNS --out benchmarks/results
+    python -m benchmarks.cpu_recipes report --root RUNS [RUNS2 ...] --out benchmarks/results
 
 ``run`` is resumable: a finished recipe (``done.json``) is skipped, an interrupted one resumes from
 its ``last.ckpt`` (written every few minutes). Keep ``--root`` outside the repository. The
@@ -59,6 +59,10 @@ RECIPES: dict[str, dict] = {
     "airplane+bathtub": {"model_scale": 0.25, "batch": 16,
                          "overrides": ["model.lr=1e-3", "real_train_categories=[airplane,bathtub]"]},
 }
+#: One torch thread per run, and glibc's allocator kept from returning (then zero-filling) freed pages:
+#: measured in benchmarks/results/speed_cpu_omnet.md (the "allocator setting" rows).
+CPU_TRAINING_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MALLOC_MMAP_MAX_": "0",
+                    "MALLOC_TRIM_THRESHOLD_": "68719476736"}
 STEP_DECAY = ["model.scheduler.milestones=[{milestone}]", "model.scheduler.gamma=0.1"]
 
 
@@ -87,6 +91,17 @@ def probe_step_seconds(recipe: dict, points: int = 768, steps: int = 3) -> float
     return (time.process_time() - start) / steps
 
 
+def code_version() -> str:
+    """The repository commit the runs train with (``+dirty`` if the tree has changes), for the report."""
+    from src.paths import REPO_ROOT
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(REPO_ROOT), *args], capture_output=True, text=True).stdout.strip()
+
+    commit = git("rev-parse", "--short", "HEAD") or "unknown"
+    return commit + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
 def recipe_command(name: str, recipe: dict, run_dir: Path, max_steps: int, val_every: int) -> list[str]:
     """The ``src.train`` command line of one recipe (resuming from ``last.ckpt`` when there is one)."""
     milestone, warmup = max(1, int(0.8 * max_steps)), max(1, int(0.05 * max_steps))
@@ -113,10 +128,10 @@ def run_recipe(name: str, root: Path, budget_min: float, val_every: int) -> str:
     else:
         step_s = probe_step_seconds(recipe)
         plan = {"recipe": recipe, "budget_cpu_min": budget_min, "probe_step_cpu_s": step_s,
-                "max_steps": max(val_every, int(budget_min * 60 / step_s))}
+                "max_steps": max(val_every, int(budget_min * 60 / step_s)), "code": code_version()}
         plan_file.write_text(json.dumps(plan, indent=2))
     command = recipe_command(name, recipe, run_dir, plan["max_steps"], val_every)
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = {**os.environ, **CPU_TRAINING_ENV}
     with open(run_dir / "train.log", "a") as log:
         log.write(f"\n$ {' '.join(command)}\n")
         log.flush()
@@ -127,19 +142,25 @@ def run_recipe(name: str, root: Path, budget_min: float, val_every: int) -> str:
     return f"{name}: finished {plan['max_steps']} steps"
 
 
-def curves(root: Path) -> pd.DataFrame:
-    """Validation rows of every recipe: recipe, step, cpu_hours, Error(R), Error(t)."""
+def curves(roots: list[Path]) -> pd.DataFrame:
+    """Validation rows of every recipe under ``roots``: recipe, code, step, cpu_hours, Error(R), Error(t).
+    A recipe name found under several roots is labelled with its root's name."""
     from src.reporting import read_csv_logs
 
+    run_dirs = [p for root in roots for p in sorted(root.iterdir()) if (p / "plan.json").is_file()]
+    names = [p.name for p in run_dirs]
     frames = []
-    for run_dir in sorted(p for p in root.iterdir() if (p / "plan.json").is_file()):
+    for run_dir in run_dirs:
+        label = run_dir.name if names.count(run_dir.name) == 1 else f"{run_dir.name} ({run_dir.parent.name})"
         logs = read_csv_logs(run_dir)
         if logs.empty or "val/Error(R)" not in logs:
             continue
         val = logs.dropna(subset=["val/Error(R)"])[["step", "time/cpu_hours", "val/Error(R)", "val/Error(t)"]]
-        frames.append(val.assign(recipe=run_dir.name))
+        code = json.loads((run_dir / "plan.json").read_text()).get("code", "unknown")
+        frames.append(val.assign(recipe=label, code=code))
     if not frames:
-        raise ConfigError(f"no recipe run with validation results under {root}: run `python -m benchmarks.cpu_recipes run` first")
+        where = ", ".join(map(str, roots))
+        raise ConfigError(f"no recipe run with validation results under {where}: run `python -m benchmarks.cpu_recipes run` first")
     frame = pd.concat(frames, ignore_index=True)
     return frame.rename(columns={"time/cpu_hours": "cpu_hours", "val/Error(R)": "Error(R)", "val/Error(t)": "Error(t)"})
 
@@ -150,20 +171,21 @@ def summary(frame: pd.DataFrame) -> pd.DataFrame:
     for name, group in frame.groupby("recipe", sort=False):
         group = group.sort_values("step")
         best = group.loc[group["Error(R)"].idxmin()]
-        rows.append({"recipe": name, "steps": int(group["step"].max()) + 1, "CPU h": group["cpu_hours"].max(),
+        rows.append({"recipe": name, "code": group["code"].iloc[0], "steps": int(group["step"].max()) + 1,
+                     "CPU h": group["cpu_hours"].max(),
                      "last Error(R)": group["Error(R)"].iloc[-1], "last Error(t)": group["Error(t)"].iloc[-1],
                      "best Error(R)": best["Error(R)"], "best at CPU h": best["cpu_hours"]})
     return pd.DataFrame(rows).sort_values("last Error(R)")
 
 
-def report(root: Path, out: Path) -> list[Path]:
+def report(roots: list[Path], out: Path) -> list[Path]:
     """``cpu_recipes.csv`` (the curves), ``cpu_recipes.md`` (summary) and ``cpu_recipes.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    frame = curves(root)
+    frame = curves(roots)
     out.mkdir(parents=True, exist_ok=True)
     frame.to_csv(out / "cpu_recipes.csv", index=False)
     table = summary(frame)
@@ -192,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--val-every", type=int, default=100, help="steps between validations (default 100)")
     run.add_argument("--parallel", type=int, default=1, help="recipes trained at once, one thread each (default 1)")
     rep = sub.add_parser("report", help="curves, summary table and plot")
-    rep.add_argument("--root", type=Path, required=True)
+    rep.add_argument("--root", type=Path, required=True, nargs="+", help="one or more run folders")
     rep.add_argument("--out", type=Path, default=Path("benchmarks/results"))
     args = parser.parse_args(argv)
 

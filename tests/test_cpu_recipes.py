@@ -62,11 +62,11 @@ def _fake_run(root: Path, name: str, errors: list[float]) -> None:
 def test_report_writes_curves_summary_and_plot(tmp_path: Path):
     _fake_run(tmp_path, "base", [40.0, 20.0, 25.0])
     _fake_run(tmp_path, "lr_3e-3", [30.0, 10.0, 5.0])
-    written = cpu_recipes.report(tmp_path, tmp_path / "out")
+    written = cpu_recipes.report([tmp_path], tmp_path / "out")
     assert all(p.is_file() and p.stat().st_size > 0 for p in written)
     curves = pd.read_csv(tmp_path / "out" / "cpu_recipes.csv")
     assert len(curves) == 6 and set(curves["recipe"]) == {"base", "lr_3e-3"}
-    summary = cpu_recipes.summary(cpu_recipes.curves(tmp_path)).set_index("recipe")
+    summary = cpu_recipes.summary(cpu_recipes.curves([tmp_path])).set_index("recipe")
     assert summary.loc["base", "best Error(R)"] == 20.0 and summary.loc["base", "best at CPU h"] == pytest.approx(0.2)
     assert summary.loc["base", "last Error(R)"] == 25.0
     assert list(summary.index) == ["lr_3e-3", "base"]  # ordered by the last validation
@@ -99,3 +99,12 @@ def test_training_clock_counts_cpu_time_and_carries_it_over_a_resume():
     resumed.on_train_start(None, None)
     _busy(0.05)
     assert resumed.state_dict()["cpu_seconds"] >= state["cpu_seconds"] + 0.05
+
+
+def test_runs_of_several_roots_are_labelled_by_their_root_when_names_collide(tmp_path: Path):
+    _fake_run(tmp_path / "v1", "base", [40.0, 20.0])
+    _fake_run(tmp_path / "v2", "base", [30.0, 10.0])
+    _fake_run(tmp_path / "v2", "cosine_warmup", [30.0, 12.0])
+    frame = cpu_recipes.curves([tmp_path / "v1", tmp_path / "v2"])
+    assert set(frame["recipe"]) == {"base (v1)", "base (v2)", "cosine_warmup"}
+    assert set(frame["code"]) == {"unknown"}  # plan.json without a recorded commit
