@@ -19,7 +19,8 @@ from baselines.learned.common.correspondence import (
     sinkhorn,
     soft_correspondence_svd,
 )
-from baselines.learned.common.layers import MIN_CHANNELS, MLP, GroupNormLast, scaled
+from baselines.learned.common.layers import MLP, GroupNormLast
+from src.models.base import MIN_CHANNELS, scaled
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
 
 
