@@ -74,7 +74,20 @@ def _assert_scheduler(module: RegistrationModule, spec: dict | None) -> None:
 
 
 def test_each_listed_method_has_a_recipe_and_each_recipe_a_model():
-    assert set(AUTHORS) <= set(RECIPES) <= set(MODELS)
+    """A recipe is a model's (``<model>.yaml``) or a named variant of one (``<model>_<what>.yaml``)."""
+    assert set(AUTHORS) <= set(RECIPES)
+    assert all(name in MODELS or name.rsplit("_", 1)[0] in MODELS for name in RECIPES)
+
+
+def test_the_cpu_recipe_decays_at_its_fraction_of_any_budget(tmp_path):
+    cfg = _compose(tmp_path, "+exp=unseen_shapes", "recipe=omnet_cpu", "trainer.max_steps=500")
+    assert (cfg.model_scale, cfg.data.batch_size, cfg.model.lr) == (0.0625, 16, 3e-3)  # the command line wins
+    plain = compose_config(f"output_dir={tmp_path / 'run'}", "recipe=omnet_cpu")
+    assert (plain.model_scale, plain.trainer.max_steps, plain.model.scheduler.fractions) == (0.25, 3000, [0.8])
+    rates, _ = _fit({"name": "multistep", "fractions": [0.5], "gamma": 0.1}, max_steps=6)
+    assert rates == pytest.approx([1.0] * 3 + [0.1] * 3)
+    rates, _ = _fit({"name": "multistep", "fractions": [0.5], "gamma": 0.1}, max_epochs=4)  # 12 steps
+    assert rates == pytest.approx([1.0] * 6 + [0.1] * 6)
 
 
 @pytest.mark.parametrize("name", MODELS)
@@ -100,9 +113,11 @@ def _leaves(node, prefix: str = ""):
 @pytest.mark.parametrize("name", RECIPES)
 def test_recipe_reaches_the_datamodule_trainer_and_module(name, tmp_path):
     recipe = _recipe(name)
-    cfg = _compose(tmp_path, f"model={name}")
+    model = name if name in MODELS else name.rsplit("_", 1)[0]
+    cfg = _compose(tmp_path, f"model={model}", f"recipe={name}")
     for key, value in _leaves(OmegaConf.to_container(recipe)):
-        assert OmegaConf.select(cfg, key) == value, key
+        if key != "model_scale":  # (set on the command line by _compose)
+            assert OmegaConf.select(cfg, key) == value, key
     datamodule, trainer = hydra.utils.instantiate(cfg.data), build_trainer(cfg)
     assert datamodule.batch_size == recipe.data.batch_size
     assert (trainer.max_steps, trainer.max_epochs) == (recipe.trainer.max_steps, recipe.trainer.max_epochs)
@@ -112,7 +127,8 @@ def test_recipe_reaches_the_datamodule_trainer_and_module(name, tmp_path):
         assert (module.hparams["lr"], module.hparams["weight_decay"]) == (recipe.model.lr, recipe.model.weight_decay)
         spec = OmegaConf.to_container(recipe.model).get("scheduler")
         assert module.hparams["scheduler"] == spec
-        _assert_scheduler(module, spec)
+        if "fractions" not in (spec or {}):  # (milestones from the run's length: test_the_cpu_recipe_...)
+            _assert_scheduler(module, spec)
 
 
 @pytest.mark.parametrize("name", sorted(AUTHORS))
@@ -249,6 +265,17 @@ def test_multistep_counts_steps_or_epochs_only():
     module = RegistrationModule({"_target_": f"{__name__}.Translation"},
                                 scheduler={"name": "multistep", "milestones": [3], "interval": "epochs"})
     with pytest.raises(ConfigError, match="step or epoch"):
+        module.configure_optimizers()
+
+
+@pytest.mark.parametrize(("spec", "message"), [
+    ({"milestones": [3], "fractions": [0.5]}, "not both"),
+    ({"fractions": [0.5], "interval": "epoch"}, "not both"),
+    ({"fractions": [1.5]}, "must lie in"),
+])
+def test_multistep_fractions_are_checked(spec, message):
+    module = RegistrationModule({"_target_": f"{__name__}.Translation"}, scheduler={"name": "multistep", **spec})
+    with pytest.raises(ConfigError, match=message):
         module.configure_optimizers()
 
 

@@ -38,12 +38,19 @@ def _evaluate_calls(network: dict[str, Any]) -> dict[str, Any]:
             for key, value in network.items()}
 
 
-def multistep(optimizer: Optimizer, total_steps: TotalSteps, milestones: Sequence[int], gamma: float = 0.1,
-              interval: str = "step") -> SchedulerConfig:
+def multistep(optimizer: Optimizer, total_steps: TotalSteps, milestones: Sequence[int] = (), gamma: float = 0.1,
+              interval: str = "step", fractions: Sequence[float] = ()) -> SchedulerConfig:
     """×``gamma`` at each milestone, counted in optimiser steps or in epochs (``interval``): epochs
-    follow the dataset actually used, as the authors' epoch schedules do."""
+    follow the dataset actually used, as the authors' epoch schedules do. ``fractions`` instead puts the
+    milestones at those fractions of the run's optimiser steps, so the decay follows any budget."""
     if interval not in ("step", "epoch"):
         raise ConfigError(f"model.scheduler.interval must be step or epoch, got {interval!r}")
+    if fractions:
+        if milestones or interval != "step":
+            raise ConfigError("model.scheduler: give milestones or fractions (of the run's steps, interval step), not both")
+        if not all(0 < f < 1 for f in fractions):
+            raise ConfigError(f"model.scheduler.fractions must lie in (0, 1), got {list(fractions)}")
+        milestones = [max(1, round(f * total_steps())) for f in fractions]
     return {"scheduler": MultiStepLR(optimizer, list(milestones), gamma), "interval": interval}
 
 
