@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -37,6 +38,16 @@ def test_export_writes_weights_only_checkpoint_and_card(run_dir, tmp_path):
     best = torch.load(json.loads((run_dir / "metrics.json").read_text())["checkpoint"], weights_only=False)
     assert all(torch.equal(saved["state_dict"][k], v) for k, v in best["state_dict"].items())
     assert card["parameters"] == sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters())
+
+
+def test_the_card_names_no_path_of_this_machine(run_dir, tmp_path):
+    copy = tmp_path / "resumed_run"
+    shutil.copytree(run_dir, copy)
+    results = json.loads((copy / "metrics.json").read_text())
+    (copy / "metrics.json").write_text(json.dumps(results | {"resumed_from": str(copy / "checkpoints" / "last.ckpt")}))
+    export(copy, "tiny", tmp_path / "out")
+    text = (tmp_path / "out" / "tiny.json").read_text()
+    assert str(tmp_path) not in text and json.loads(text)["training"]["resumed_from"] == "<run dir>/checkpoints/last.ckpt"
 
 
 def test_find_shipped_matches_the_experiment(run_dir, tmp_path):

@@ -115,8 +115,16 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
         "metrics": {"test": results["metrics"]}
         | {key: json.loads(path.read_text())["metrics"] for key, path in (evaluations or {}).items()},
     }
-    target.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+    target.with_suffix(".json").write_text(_portable(json.dumps(card, indent=2), run_dir) + "\n")
     return target
+
+
+def _portable(text: str, run_dir: Path) -> str:
+    """``text`` with the run directory's absolute path (resumed_from, ckpt_path in the command) written as
+    ``<run dir>``: a card names no path of the machine it was exported on."""
+    for prefix in sorted({str(run_dir.resolve()), str(run_dir.absolute())}, key=len, reverse=True):
+        text = text.replace(prefix, "<run dir>")
+    return text
 
 
 def main(argv: list[str] | None = None) -> None:
