@@ -168,3 +168,53 @@ def test_fusion_masking_follows_the_official_code_by_default(masking):
 def test_unknown_fusion_masking_is_refused():
     with pytest.raises(ValueError, match="fusion_masking"):
         OMNet(fusion_masking="some")
+
+
+def _hand_weighted_ce(logits, labels, weights, per_cloud):
+    """Class-weighted cross-entropy written out point by point, with plain Python floats."""
+    import math
+
+    clouds = []
+    total_wn, total_w = 0.0, 0.0
+    for b in range(labels.shape[0]):
+        wn, w = 0.0, 0.0
+        for n in range(labels.shape[1]):
+            l0, l1 = float(logits[b, n, 0]), float(logits[b, n, 1])
+            label = int(labels[b, n])
+            nll = math.log(math.exp(l0) + math.exp(l1)) - (l1 if label else l0)
+            wn += weights[label] * nll
+            w += weights[label]
+        clouds.append(wn / w)
+        total_wn, total_w = total_wn + wn, total_w + w
+    return sum(clouds) / len(clouds) if per_cloud else total_wn / total_w
+
+
+def test_mask_cross_entropy_is_normalised_per_cloud_as_the_official_code():
+    """Clouds with different overlap ratios: the official per-cloud reduction differs from the batch one."""
+    from src.models.omnet import weighted_mask_cross_entropy
+
+    g = torch.Generator().manual_seed(3)
+    logits = torch.randn(3, 7, 2, generator=g, dtype=torch.float64)
+    labels = torch.tensor([[1] * 6 + [0], [1, 0, 0, 0, 0, 0, 0], [1, 1, 1, 0, 0, 0, 0]])
+    weights = torch.tensor([0.7, 0.3], dtype=torch.float64)
+    per_cloud = weighted_mask_cross_entropy(logits, labels, weights, "per_cloud")
+    batch = weighted_mask_cross_entropy(logits, labels, weights, "batch")
+    assert per_cloud.item() == pytest.approx(_hand_weighted_ce(logits, labels, [0.7, 0.3], True), rel=1e-12)
+    assert batch.item() == pytest.approx(_hand_weighted_ce(logits, labels, [0.7, 0.3], False), rel=1e-12)
+    assert abs(per_cloud.item() - batch.item()) > 1e-3
+
+
+def test_omnet_loss_uses_the_configured_mask_reduction():
+    src, ref, gt = _batch()
+    ref = ref.clone()
+    for b in range(ref.shape[0]):  # a different overlap ratio per cloud: the last 10·b points far away
+        ref[b, ref.shape[1] - 10 * b:] += 5.0
+    losses = {}
+    for reduction in ("per_cloud", "batch"):
+        torch.manual_seed(0)
+        model = _small(mask_ce_reduction=reduction).eval()
+        losses[reduction] = model.loss(model(src, ref, gt), gt)["loss/mask"].item()
+    assert OMNet().mask_ce_reduction == "per_cloud"
+    assert losses["per_cloud"] != pytest.approx(losses["batch"], rel=1e-6)
+    with pytest.raises(ValueError, match="mask_ce_reduction"):
+        OMNet(mask_ce_reduction="sum")

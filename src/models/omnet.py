@@ -35,6 +35,10 @@ from src.models.base import MIN_CHANNELS, scaled
 MASK_MODES = ("argmax", "topk")
 FUSION_MASKINGS = ("official", "every_layer")
 TRANSLATION_LOSSES = ("squared", "l2")
+#: How the class-weighted mask cross-entropy is normalised: ``per_cloud`` (the official code's
+#: ``frequency_weighted_cross_entropy``, official README: Σw·nll/Σw per cloud, then the batch mean) or
+#: ``batch`` (Σw·nll/Σw over all B·N points at once, PyTorch's ``F.cross_entropy(weight=...)``).
+MASK_CE_REDUCTIONS = ("per_cloud", "batch")
 INFERENCE_CHUNK_ROWS = 512  # points per chunk in CPU inference (measured: 256-1024 alike at width 0.25, 512 best at 1.0)
 
 VarMean = tuple[Tensor, Tensor]
@@ -167,8 +171,11 @@ class OMNetIteration(nn.Module):
         fusion: bool = True,
         connection: bool = True,
         fusion_masking: str = "official",
+        mask_ce_reduction: str = "per_cloud",
     ) -> None:
         super().__init__()
+        if mask_ce_reduction not in MASK_CE_REDUCTIONS:
+            raise ValueError(f"mask_ce_reduction must be one of {MASK_CE_REDUCTIONS}, got {mask_ce_reduction!r}")
         w = partial(scaled, width=width, minimum=MIN_CHANNELS)
         self.mask_module, self.fusion_enabled = mask_module, fusion
         self.fusion_masking = fusion_masking
@@ -367,8 +374,11 @@ class OMNet(nn.Module):
         trans_loss_weight: float = 4.0,
         trans_loss: str = "squared",
         fusion_masking: str = "official",
+        mask_ce_reduction: str = "per_cloud",
     ) -> None:
         super().__init__()
+        if mask_ce_reduction not in MASK_CE_REDUCTIONS:
+            raise ValueError(f"mask_ce_reduction must be one of {MASK_CE_REDUCTIONS}, got {mask_ce_reduction!r}")
         if fusion_masking not in FUSION_MASKINGS:
             raise ValueError(f"fusion_masking must be one of {FUSION_MASKINGS}, got {fusion_masking!r}")
         if mask_mode not in MASK_MODES:
@@ -382,6 +392,7 @@ class OMNet(nn.Module):
         self.mask_start_iter, self.mask_mode, self.topk = mask_start_iter, mask_mode, topk
         self.overlap_dist = overlap_dist
         self.rot_loss_weight, self.trans_loss_weight, self.trans_loss = rot_loss_weight, trans_loss_weight, trans_loss
+        self.mask_ce_reduction = mask_ce_reduction
         self.register_buffer("mask_class_weights", torch.tensor(mask_class_weights, dtype=torch.float32))
         blocks = 1 if share_weights else num_iters
         self.iterations = nn.ModuleList(OMNetIteration(width, mask_module, fusion, connection, fusion_masking) for _ in range(blocks))
@@ -471,10 +482,22 @@ class OMNet(nn.Module):
                 terms["loss/trans"] = terms["loss/trans"] + (trans - trans_gt).norm(dim=-1).mean()
             if self.mask_loss_enabled:
                 (logits_src, logits_ref), (labels_src, labels_ref) = outputs["mask_logits"][i], outputs["mask_labels"][i]
-                ce = lambda lg, lb: F.cross_entropy(_full(lg.reshape(-1, 2)), lb.reshape(-1), weight=self.mask_class_weights)  # noqa: E731
+                ce = partial(weighted_mask_cross_entropy, class_weights=self.mask_class_weights, reduction=self.mask_ce_reduction)
                 terms["loss/mask"] = terms["loss/mask"] + 0.5 * (ce(logits_src, labels_src) + ce(logits_ref, labels_ref))
         terms["loss"] = self.rot_loss_weight * terms["loss/quat"] + self.trans_loss_weight * terms["loss/trans"] + terms["loss/mask"]
         return terms
+
+
+def weighted_mask_cross_entropy(logits: Tensor, labels: Tensor, class_weights: Tensor, reduction: str = "per_cloud") -> Tensor:
+    """Class-weighted two-class cross-entropy of mask logits (B,N,2) against labels (B,N).
+
+    ``per_cloud``: Σₙ w·nll / Σₙ w for each cloud, then the mean over the batch (the official
+    ``frequency_weighted_cross_entropy``); ``batch``: one ratio over all B·N points."""
+    nll = F.cross_entropy(_full(logits).reshape(-1, 2), labels.reshape(-1), reduction="none").view(labels.shape)
+    weights = class_weights[labels]
+    if reduction == "per_cloud":
+        return ((weights * nll).sum(dim=1) / weights.sum(dim=1)).mean()
+    return (weights * nll).sum() / weights.sum()
 
 
 def _init_weights(module: nn.Module) -> None:
