@@ -18,9 +18,16 @@ def euler_seq_for(partial: str) -> str:
     return EULER_SEQ_BY_PARTIAL[partial]
 
 
+def add_ints(*values: int | str) -> int:
+    """``${add:a,b}``: the sum of integers (e.g. a carve-out's start from two sizes)."""
+    return sum(int(v) for v in values)
+
+
 def register_resolvers() -> None:
     if not OmegaConf.has_resolver("euler_seq"):
         OmegaConf.register_new_resolver("euler_seq", euler_seq_for)
+    if not OmegaConf.has_resolver("add"):
+        OmegaConf.register_new_resolver("add", add_ints)
 
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml deliberately share their names with the launcher

@@ -25,7 +25,7 @@ def cache_root(tmp_path_factory) -> Path:
 
 
 def test_the_sweep_registers_the_pairs_src_eval_tests_on(cache_root, capsys):
-    overrides = [f"data.cache_root={cache_root}", "val_size=3"]
+    overrides = [f"data.cache_root={cache_root}", "test_size=3", "val_size=1"]
     key, pairs = sweep.benchmark_pairs(3, "os", "rpmnet", ["data.pair.noise_sigma=0.01", *overrides])
     with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=real_airplane", "sampling=os", "partial=rpmnet",
@@ -40,4 +40,4 @@ def test_the_sweep_registers_the_pairs_src_eval_tests_on(cache_root, capsys):
     assert "2 pairs of real_airplane/os/rpmnet (noise 0.01), 717 points" in capsys.readouterr().out
     assert sweep.main(["icp", "--pairs", "4", "--workers", "0", "--override", *overrides]) == 2
     assert capsys.readouterr().err == ("error: --pairs 4: the real_airplane/ts/rpmnet test set has 3 pairs "
-                                       "(--override val_size=N carves out more shapes)\n")
+                                       "(--override test_size=N carves out more shapes)\n")

@@ -213,7 +213,7 @@ def test_real_airplane_normals_reach_rpmnet_with_the_files_sign(tmp_path):
     register_resolvers()
     prepare("modelnet40_resampled", source=AIRPLANES, cache_root=tmp_path, limit=4, workers=1)
     with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=["+exp=real_airplane", "val_size=2", "partial=rpmnet", "data.normals=cache",
+        cfg = compose("config", overrides=["+exp=real_airplane", "test_size=1", "val_size=1", "val_repeat=2", "partial=rpmnet", "data.normals=cache",
                                            f"data.cache_root={tmp_path}", "data.num_workers=0",
                                            "output_dir=/tmp/unused"])
     dm = hydra.utils.instantiate(cfg.data)

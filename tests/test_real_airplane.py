@@ -31,7 +31,7 @@ def cache_root(tmp_path_factory) -> Path:
 
 def _datamodule(cache_root: Path, *overrides: str, exp: str = "real_airplane"):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("config", overrides=[f"+exp={exp}", "val_size=4", f"data.cache_root={cache_root}",
+        cfg = compose("config", overrides=[f"+exp={exp}", *(("test_size=4", "val_size=2") if exp == "real_airplane" else ("val_size=4",)), f"data.cache_root={cache_root}",
                                            "data.num_workers=0", "output_dir=/tmp/unused", *overrides])
     return hydra.utils.instantiate(cfg.data)
 
@@ -48,11 +48,13 @@ def _ids(category: str, first: int, last: int) -> list[str]:
 def test_validation_carveout_is_the_last_train_ids(cache_root):
     dm = _datamodule(cache_root)
     dm.setup("fit")
+    dm.setup("test")
     names = dm.cache.split("train").shape_names
-    val_names = [names[i] for i in dm.datasets["val"].shape_indices]
-    train_names = [names[i] for i in dm.datasets["train"].shape_indices]
-    assert val_names == ["airplane_0009", "airplane_0010", "airplane_0011", "airplane_0012"]
-    assert len(train_names) == 8 and not set(train_names) & set(val_names)
+    stages = {stage: [names[i] for i in data.shape_indices] for stage, data in dm.datasets.items()}
+    assert stages["test"] == ["airplane_0009", "airplane_0010", "airplane_0011", "airplane_0012"]
+    assert stages["val"] == ["airplane_0007", "airplane_0008"] * 4  # the ids before the test carve-out, 4 pairs each
+    assert stages["train"] == [f"airplane_{i:04d}" for i in range(1, 7)]
+    assert len({tuple(dm.datasets["val"][i]["points_src"][:3].flatten().tolist()) for i in range(8)}) == 8
 
 
 @pytest.mark.parametrize("partial", ["prnet", "rpmnet"])
@@ -78,10 +80,9 @@ def test_asking_for_the_withheld_test_split_stops_with_the_prepare_message(cache
 def test_training_on_both_categories_keeps_the_airplane_carveout(cache_root):
     dm = _datamodule(cache_root, "real_train_categories=[airplane,bathtub]")
     dm.setup()
-    carveout = _ids("airplane", 9, 12)
-    assert _stage_names(dm) == {"train": _ids("airplane", 1, 8) + _ids("bathtub", 1, 12), "val": carveout,
-                                "test": carveout}
-    assert dm.datasets["train"][19]["points_src"].shape == (768, 3)  # a bathtub pair
+    assert _stage_names(dm) == {"train": _ids("airplane", 1, 6) + _ids("bathtub", 1, 12),
+                                "val": _ids("airplane", 7, 8) * 4, "test": _ids("airplane", 9, 12)}
+    assert dm.datasets["train"][17]["points_src"].shape == (768, 3)  # a bathtub pair
 
 
 @pytest.mark.parametrize(("train", "test"), [("airplane", "bathtub"), ("bathtub", "airplane")])

@@ -172,9 +172,8 @@ def test_real_unseen_category_tests_on_the_other_category(merged_root, overrides
      (["real_train_categories=[airplane,bathtub]"], _ids("airplane", 1, 4) + _ids("bathtub", 1, 4))],
 )
 def test_real_airplane_trains_on_one_or_both_categories_and_keeps_the_airplane_carveout(merged_root, overrides, train):
-    datamodule = _datamodule(merged_root, "+exp=real_airplane", "val_size=2", *overrides)
-    carveout = _ids("airplane", 5, 6)
-    assert _stage_names(datamodule) == {"train": train, "val": carveout, "test": carveout}
+    datamodule = _datamodule(merged_root, "+exp=real_airplane", "test_size=1", "val_size=1", "val_repeat=2", *overrides)
+    assert _stage_names(datamodule) == {"train": train, "val": _ids("airplane", 5, 5) * 2, "test": _ids("airplane", 6, 6)}
 
 
 def test_one_category_on_both_sides_of_the_unseen_category_experiment_is_refused(merged_root):
@@ -184,5 +183,5 @@ def test_one_category_on_both_sides_of_the_unseen_category_experiment_is_refused
 
 def test_exclude_must_name_a_stage_of_the_same_split(merged_root):
     with pytest.raises(ConfigError, match="exclude: 'test' must be a stage of split 'train' without exclude"):
-        _datamodule(merged_root, "+exp=real_airplane", "val_size=2", "data.splits.test.split=test",
+        _datamodule(merged_root, "+exp=real_airplane", "test_size=1", "val_size=1", "data.splits.test.split=test",
                     "data.splits.train.exclude=[test]")

@@ -2,7 +2,7 @@
 
 A small check used to choose and document the baselines' defaults, not the evaluation pipeline. Its
 pairs are the benchmark's: the first ``--pairs`` pairs of the fixed test set of ``+exp=real_airplane``
-(the carve-out of the last ``val_size`` = 100 airplane train ids, the official test split being withheld),
+(the carve-out of the last ``test_size`` = 100 airplane train ids, the official test split being withheld),
 built as the grid builds it (:func:`benchmarks.grid_plan.build_test_set`: the experiment composed with
 ``sampling``, ``partial`` and ``data.pair.noise_sigma``, then :mod:`src.data`'s cache, splits and
 :func:`~src.data.transforms.build_pair_transforms`). Pair k of a sweep is therefore pair k of the grid's
@@ -14,7 +14,7 @@ Defaults: the RPMNet manner (independent half-space crops keeping 70 %, the tran
 717 points), twice-sampled (two disjoint subsets of each 10,000-point file), noise N(0, 0.01²) clipped
 to ±0.05. ``--os``: once-sampled; ``--clean``: no noise; ``--partial prnet``: the PRNet manner (the
 real-airplane grid's); ``--override KEY=VALUE``: any other override of the experiment (e.g.
-``data.pair.rot_mag=90``, or ``val_size=200`` for up to 200 pairs, on other shapes than the grid's).
+``data.pair.rot_mag=90``, or ``test_size=200`` for up to 200 pairs, on other shapes than the grid's).
 
 Prepare the data once, as for the grid::
 
@@ -69,7 +69,7 @@ def benchmark_pairs(count: int, sampling: str, partial: str, overrides: list[str
     available = len(test_set.dataset)
     if not 1 <= count <= available:
         raise UserError(f"--pairs {count}: the {test_set.key} test set has {available} pairs "
-                        "(--override val_size=N carves out more shapes)")
+                        "(--override test_size=N carves out more shapes)")
     return test_set.key, test_set.pairs(count)
 
 
