@@ -131,15 +131,21 @@ def run_recipe(name: str, root: Path, budget_min: float, val_every: int) -> str:
                 "max_steps": max(val_every, int(budget_min * 60 / step_s)), "code": code_version()}
         plan_file.write_text(json.dumps(plan, indent=2))
     command = recipe_command(name, recipe, run_dir, plan["max_steps"], val_every)
-    env = {**os.environ, **CPU_TRAINING_ENV}
-    with open(run_dir / "train.log", "a") as log:
-        log.write(f"\n$ {' '.join(command)}\n")
-        log.flush()
-        code = subprocess.call(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    code = train_logged(run_dir, command)
     if code != 0:
         return f"{name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
     done.write_text(json.dumps({**plan, "command": " ".join(command[1:])}, indent=2))
     return f"{name}: finished {plan['max_steps']} steps"
+
+
+def train_logged(run_dir: Path, command: list[str]) -> int:
+    """Run one training command with :data:`CPU_TRAINING_ENV`, appending it and its output to
+    ``run_dir/train.log`` (the command first, so the run folder says how to resume); its exit code."""
+    env = {**os.environ, **CPU_TRAINING_ENV}
+    with open(run_dir / "train.log", "a") as log:
+        log.write(f"\n$ {' '.join(command)}\n")
+        log.flush()
+        return subprocess.call(command, stdout=log, stderr=subprocess.STDOUT, env=env)
 
 
 def curves(roots: list[Path]) -> pd.DataFrame:

@@ -55,29 +55,39 @@ def set_rng_states(state_dict: dict[str, Any]) -> None:
 class TrainingClock(L.Callback):
     """Log the training's cumulative cost as ``time/cpu_hours`` (this process's CPU time: every torch
     thread and in-process data loading) and ``time/wall_hours``, carried over resumes in the
-    checkpoint, so learning curves can be drawn against compute rather than steps.
+    checkpoint, so learning curves can be drawn against compute rather than steps. Validation during
+    fit is not training: its CPU time is counted apart, as ``time/eval_cpu_hours``.
 
     CPU time is the fair axis on a shared machine (wall time stretches with other load); with
-    ``data.num_workers=0`` it includes pair generation.
+    ``data.num_workers=0`` it includes pair generation. ``budget_cpu_hours`` stops training once the
+    training CPU time reaches it (a budget, whatever the step count).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, budget_cpu_hours: float | None = None) -> None:
+        self.budget_cpu_hours = budget_cpu_hours
         self.cpu_seconds = 0.0
         self.wall_seconds = 0.0
+        self.eval_cpu_seconds = 0.0
         self._mark: tuple[float, float] | None = None
+        self._evaluating = False
 
     def state_dict(self) -> dict[str, float]:
         self._tick()
-        return {"cpu_seconds": self.cpu_seconds, "wall_seconds": self.wall_seconds}
+        return {"cpu_seconds": self.cpu_seconds, "wall_seconds": self.wall_seconds,
+                "eval_cpu_seconds": self.eval_cpu_seconds}
 
     def load_state_dict(self, state_dict: dict[str, float]) -> None:
         self.cpu_seconds, self.wall_seconds = state_dict["cpu_seconds"], state_dict["wall_seconds"]
+        self.eval_cpu_seconds = state_dict.get("eval_cpu_seconds", 0.0)  # (checkpoints before it was counted apart)
 
     def _tick(self) -> None:
         now = (time.process_time(), time.perf_counter())
         if self._mark is not None:
-            self.cpu_seconds += now[0] - self._mark[0]
-            self.wall_seconds += now[1] - self._mark[1]
+            if self._evaluating:
+                self.eval_cpu_seconds += now[0] - self._mark[0]
+            else:
+                self.cpu_seconds += now[0] - self._mark[0]
+                self.wall_seconds += now[1] - self._mark[1]
         self._mark = now
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -87,14 +97,32 @@ class TrainingClock(L.Callback):
         self._tick()
         self._mark = None
 
+    def _fitting(self, trainer: L.Trainer) -> bool:
+        return not trainer.sanity_checking and trainer.state.fn == "fit" and self._mark is not None
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self._fitting(trainer):
+            self._tick()
+            self._evaluating = True
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self._fitting(trainer):
+            self._tick()
+            self._evaluating = False
+
     def _log(self, pl_module: L.LightningModule) -> None:
         self._tick()
-        pl_module.log_dict({"time/cpu_hours": self.cpu_seconds / 3600, "time/wall_hours": self.wall_seconds / 3600})
+        pl_module.log_dict({"time/cpu_hours": self.cpu_seconds / 3600, "time/wall_hours": self.wall_seconds / 3600,
+                            "time/eval_cpu_hours": self.eval_cpu_seconds / 3600})
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
         if (trainer.global_step % trainer.log_every_n_steps) == 0:
             self._log(pl_module)
+        if self.budget_cpu_hours is not None:
+            self._tick()
+            if self.cpu_seconds >= self.budget_cpu_hours * 3600:
+                trainer.should_stop = True
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if not trainer.sanity_checking and trainer.state.fn == "fit":
+        if self._fitting(trainer):
             self._log(pl_module)

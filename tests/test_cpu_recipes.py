@@ -101,6 +101,29 @@ def test_training_clock_counts_cpu_time_and_carries_it_over_a_resume():
     assert resumed.state_dict()["cpu_seconds"] >= state["cpu_seconds"] + 0.05
 
 
+def _fake_trainer(step: int = 1):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(sanity_checking=False, state=SimpleNamespace(fn="fit"), global_step=step,
+                           log_every_n_steps=1000, should_stop=False)
+
+
+def test_training_clock_counts_validation_apart_and_stops_at_its_budget():
+    clock, trainer = TrainingClock(budget_cpu_hours=0.12 / 3600), _fake_trainer()
+    clock.on_train_start(trainer, None)
+    _busy(0.05)
+    clock.on_validation_start(trainer, None)
+    _busy(0.1)
+    clock.on_validation_end(trainer, None)
+    state = clock.state_dict()
+    assert 0.05 <= state["cpu_seconds"] < 0.1 and state["eval_cpu_seconds"] >= 0.1
+    clock.on_train_batch_end(trainer, None, None, None, 0)
+    assert not trainer.should_stop  # ~0.05 s of training, under the 0.12 s budget
+    _busy(0.08)
+    clock.on_train_batch_end(trainer, None, None, None, 0)
+    assert trainer.should_stop
+
+
 def test_runs_of_several_roots_are_labelled_by_their_root_when_names_collide(tmp_path: Path):
     _fake_run(tmp_path / "v1", "base", [40.0, 20.0])
     _fake_run(tmp_path / "v2", "base", [30.0, 10.0])

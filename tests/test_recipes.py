@@ -232,6 +232,14 @@ def test_plateau_halves_after_each_epoch_without_validation_progress():
     assert rates == pytest.approx([1.0] * 6 + [0.5] * 3 + [0.3] * 3)  # epoch 1 (0-based) is the first without progress
 
 
+def test_plateau_per_validation_counts_patience_in_validations():
+    """Validated every 2 steps over 3-batch epochs: the rate halves after each validation without progress."""
+    spec = {"name": "plateau", "monitor": "val/loss", "factor": 0.5, "patience": 0, "min_lr": 0.1,
+            "interval": "validation"}
+    rates, _ = _fit(spec, flat=True, max_steps=8, val_check_interval=2, check_val_every_n_epoch=None)
+    assert rates == pytest.approx([1.0] * 4 + [0.5] * 2 + [0.25] * 2)  # validations after steps 2, 4, 6
+
+
 def test_cosine_warms_up_then_anneals_over_the_epochs_of_the_run():
     rates, module = _fit({"name": "cosine", "warmup_steps": 2, "min_lr": 0.1}, max_epochs=4)
     assert module.lr_schedulers().lr_lambdas[0].total_steps == 12  # 4 epochs of 3 batches

@@ -54,11 +54,21 @@ def multistep(optimizer: Optimizer, total_steps: TotalSteps, milestones: Sequenc
     return {"scheduler": MultiStepLR(optimizer, list(milestones), gamma), "interval": interval}
 
 
+#: Lightning frequency of a schedule that the module steps itself (never reached by Lightning's own stepping).
+NEVER = 2**62
+
+
 def plateau(optimizer: Optimizer, total_steps: TotalSteps, monitor: str = "val/loss", factor: float = 0.1,
-            patience: int = 10, min_lr: float = 0.0) -> SchedulerConfig:
+            patience: int = 10, min_lr: float = 0.0, interval: str = "epoch") -> SchedulerConfig:
     """×``factor`` when ``monitor`` (lower is better) has not improved for more than ``patience``
-    epochs, stepped once per epoch after its validation."""
+    epochs, stepped once per epoch after its validation; ``interval: validation`` counts ``patience``
+    in validations instead and steps after each one (runs validated every N steps, whose epochs are
+    not the authors')."""
+    if interval not in ("epoch", "validation"):
+        raise ConfigError(f"model.scheduler plateau interval must be epoch or validation, got {interval!r}")
     scheduler = ReduceLROnPlateau(optimizer, mode="min", factor=factor, patience=patience, min_lr=min_lr)
+    if interval == "validation":  # stepped by RegistrationModule.on_validation_epoch_end; Lightning saves its state
+        return {"scheduler": scheduler, "interval": "epoch", "frequency": NEVER, "monitor": monitor, "strict": False}
     return {"scheduler": scheduler, "interval": "epoch", "monitor": monitor}
 
 
@@ -207,6 +217,20 @@ class RegistrationModule(L.LightningModule):
         self.log_dict({f"val/{k}": v for k, v in values.items()}, prog_bar=False)
         self.log("val_score", values["score"], prog_bar=True, logger=False)
         self.val_metrics.reset()
+        self._step_plateau_per_validation({"val/loss": self.eval_losses["val"].compute(),
+                                           **{f"val/{k}": v for k, v in values.items()}})
+
+    def _step_plateau_per_validation(self, values: Mapping[str, Tensor]) -> None:
+        """Step a ``plateau`` schedule with ``interval: validation`` on this validation's monitored value."""
+        spec = self.hparams["scheduler"]
+        if not spec or spec["name"] != "plateau" or spec.get("interval") != "validation":
+            return
+        if self.trainer.sanity_checking or self.trainer.state.fn != "fit":
+            return
+        monitor = spec.get("monitor", "val/loss")
+        if monitor not in values:
+            raise ConfigError(f"model.scheduler plateau monitors {monitor!r}; validation logs {sorted(values)}")
+        self.lr_schedulers().step(float(values[monitor]))
 
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         self._evaluate(batch, self.test_metrics, "test")

@@ -1,0 +1,251 @@
+"""One CPU budget, every learned method: each trained through ``src.train`` on the real airplanes.
+
+Protocol: ``+exp=real_airplane`` (train on the airplanes outside validation and test, select on the 200
+validation pairs, test on the carve-out), TS, PRNet manner, clean pairs, one torch thread, pairs made in
+the training process. Each method keeps its authors' recipe (``conf/recipe/<model>.yaml``; OMNet: the
+official code's, ``recipe=omnet_official``) with the schedule mapped onto the steps the budget buys
+(:func:`budget_schedule`), its authors' batch, and the widest width that still buys ``MIN_STEPS`` steps
+(:func:`plan_method`, from a probe of the step's CPU time). PointNetLK's classifier stage trains first,
+inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its ``last.ckpt``.
+
+    python -m benchmarks.cpu_budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2]
+    python -m benchmarks.cpu_budget report --root RUNS --out benchmarks/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from benchmarks.cpu_recipes import code_version, train_logged
+from src.errors import ConfigError, exit_code_of
+
+#: The learned methods of the grid, in the grid's order.
+METHODS = ("omnet", "dcp", "prnet", "rpmnet", "idam", "pointnetlk", "pointnetlk_revisited", "fmr", "deepgmr")
+#: A recipe other than ``conf/recipe/<model>.yaml``: OMNet's official code, not the paper's text (the guide's rule).
+RECIPE_OF = {"omnet": "omnet_official"}
+#: PointNetLK's first stage (its authors' ``ex1_train.sh``): a classifier whose features PointNetLK starts from.
+#: On the synthetic default's categories: the real data has one training category (nothing to classify), and
+#: bathtubs are the unseen-category test set.
+CLASSIFIER = {"model": "pointnet_classifier", "data": ["+exp=unseen_shapes", "data=synthetic"]}
+MIN_STEPS = 500
+WIDTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+VALIDATIONS = 20          # validations per run (200 pairs each), the points of the learning curve
+PROBE_POINTS = 768        # the PRNet manner's crop
+#: Step-cost allowance for what the probe does not time (pair generation, logging, Lightning's loop).
+OVERHEAD = 1.1
+PROTOCOL = [
+    "+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noise_sigma=0.0",
+    "trainer.accelerator=cpu", "data.num_workers=0", "data.persistent_workers=false", "data.pin_memory=false",
+    "data.eval_batch_size=50", "trainer.check_val_every_n_epoch=null", "trainer.max_epochs=-1",
+    "trainer.log_every_n_steps=20", "trainer.enable_progress_bar=false", "test_after_fit=true",
+    "callbacks.periodic_checkpoint.train_time_interval.minutes=5",
+]
+
+
+def compose_recipe(model: str) -> Any:
+    """The model's training recipe as ``src.train`` composes it (``model=<model>`` plus its recipe)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from src.config import register_resolvers
+    from src.paths import REPO_ROOT
+
+    register_resolvers()
+    overrides = [f"model={model}"] + ([f"recipe={RECIPE_OF[model]}"] if model in RECIPE_OF else [])
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def budget_schedule(cfg: Any) -> list[str]:
+    """Overrides that put the recipe's schedule on the run's own length: milestones (in epochs or steps)
+    become fractions of the steps; a plateau's patience (in epochs) the same share of the validations."""
+    from omegaconf import OmegaConf
+
+    spec = OmegaConf.to_container(cfg.model, resolve=True).get("scheduler")
+    length = cfg.trainer.max_epochs if cfg.trainer.max_epochs and cfg.trainer.max_epochs > 0 else cfg.trainer.max_steps
+    if spec is None:
+        return []
+    if spec["name"] == "multistep" and "milestones" in spec:
+        fractions = ", ".join(f"{m / length:.4g}" for m in spec["milestones"])
+        return ["~model.scheduler",
+                f"+model.scheduler={{name: multistep, interval: step, fractions: [{fractions}], gamma: {spec['gamma']}}}"]
+    if spec["name"] == "plateau":
+        patience = max(1, round(spec["patience"] / length * VALIDATIONS))
+        return [f"model.scheduler.patience={patience}", "+model.scheduler.interval=validation"]
+    if spec["name"] in ("cosine", "onecycle") or "fractions" in spec:
+        return []  # already spans the run
+    raise ConfigError(f"{cfg.model.network._target_}: no budget mapping for schedule {spec}")
+
+
+def probe_step_seconds(model: str, width: float, batch: int, steps: int = 2) -> float:
+    """CPU seconds of one training step (forward, loss, backward, Adam) of ``model`` at ``width``, one
+    thread, fresh weights, ``batch`` pairs of :data:`PROBE_POINTS` points; the first step is not timed."""
+    import torch
+    import torch.nn.functional as F
+
+    from benchmarks.train_step import build_network, pair_batch
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    network = build_network(model, width, []).train()
+    data = pair_batch(batch, PROBE_POINTS, torch.device("cpu"))
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
+
+    def loss() -> torch.Tensor:
+        if model == CLASSIFIER["model"]:
+            return F.cross_entropy(network(data["points_ref"]), torch.arange(batch) % 2)
+        return network.loss(network(data["points_src"], data["points_ref"], data["transform_gt"]), data["transform_gt"])["loss"]
+
+    def step() -> None:
+        optimizer.zero_grad(set_to_none=True)
+        loss().backward()
+        optimizer.step()
+
+    step()
+    start = time.process_time()
+    for _ in range(steps):
+        step()
+    return (time.process_time() - start) / steps
+
+
+@dataclass
+class Stage:
+    """One ``src.train`` run of a method's budget: its model, width, batch, steps and overrides."""
+
+    name: str
+    model: str
+    width: float
+    batch: int
+    step_cpu_s: float
+    budget_cpu_h: float
+    max_steps: int
+    overrides: list[str] = field(default_factory=list)
+
+    @property
+    def val_every(self) -> int:
+        return max(1, self.max_steps // VALIDATIONS)
+
+
+def _steps_for(seconds: float, step_s: float) -> int:
+    return int(seconds / (step_s * OVERHEAD))
+
+
+def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[str, Any]:
+    """Width, batch, steps and schedule of ``method`` under ``budget_h`` CPU hours (see the module docstring)."""
+    cfg = compose_recipe(method)
+    batch = int(cfg.data.batch_size)
+    probes: dict[str, float] = {}
+    for width in WIDTHS:
+        probes[str(width)] = probe(method, width, batch)
+        if _steps_for(budget_h * 3600, probes[str(width)]) >= MIN_STEPS:
+            break
+    step_s = probes[str(width)]
+    stages = []
+    budget_s = budget_h * 3600
+    if method == "pointnetlk":  # the classifier stage's share: the authors' epochs times the probed step costs
+        cls = compose_recipe(CLASSIFIER["model"])
+        cls_batch = int(cls.data.batch_size)
+        cls_step = probe(CLASSIFIER["model"], width, cls_batch)
+        cls_cost, lk_cost = cls.trainer.max_epochs * cls_step, cfg.trainer.max_epochs * step_s
+        cls_s = budget_s * cls_cost / (cls_cost + lk_cost)
+        stages.append(Stage("classifier", CLASSIFIER["model"], width, cls_batch, cls_step, cls_s / 3600,
+                            _steps_for(cls_s, cls_step), [*CLASSIFIER["data"], *budget_schedule(cls)]))
+        budget_s -= cls_s
+    stages.append(Stage(method, method, width, batch, step_s, budget_s / 3600, _steps_for(budget_s, step_s),
+                        ([f"recipe={RECIPE_OF[method]}"] if method in RECIPE_OF else []) + budget_schedule(cfg)))
+    return {"method": method, "budget_cpu_h": budget_h, "width": width, "probe_step_cpu_s": probes,
+            "stages": [vars(s) for s in stages], "code": code_version()}
+
+
+def stage_command(stage: Stage, run_dir: Path, extra: list[str]) -> list[str]:
+    """The ``src.train`` command line of one stage (resuming from its ``last.ckpt`` when there is one)."""
+    protocol = [o for o in PROTOCOL if not (stage.model == CLASSIFIER["model"] and o.startswith(("+exp=", "sampling=", "partial=")))]
+    command = [sys.executable, "-m", "src.train", *protocol, f"model={stage.model}", f"model_scale={stage.width}",
+               f"data.batch_size={stage.batch}", f"trainer.max_steps={stage.max_steps}",
+               f"trainer.val_check_interval={stage.val_every}", *stage.overrides, *extra,
+               f"callbacks.clock.budget_cpu_hours={stage.budget_cpu_h:.4f}",
+               f"task_name=cpu_budget_{stage.name}", f"hydra.run.dir={run_dir}"]
+    last = run_dir / "checkpoints" / "last.ckpt"
+    return command + ([f"ckpt_path={last}"] if last.is_file() else [])
+
+
+def best_checkpoint(run_dir: Path) -> Path:
+    """The run's selected checkpoint (``best-<step>.ckpt``; the last one when the recipe selects none)."""
+    best = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
+    return best[-1] if best else run_dir / "checkpoints" / "last.ckpt"
+
+
+#: Planning composes configs (Hydra's global state) and times steps in this process: one method at a time.
+_PLANNING = threading.Lock()
+
+
+def run_method(method: str, root: Path, budget_h: float) -> str:
+    """Plan (once), then train each stage of ``method`` to its steps (resuming); a one-line status."""
+    method_dir = root / method
+    method_dir.mkdir(parents=True, exist_ok=True)
+    plan_file = method_dir / "plan.json"
+    with _PLANNING:
+        if not plan_file.is_file():
+            plan_file.write_text(json.dumps(plan_method(method, budget_h), indent=2))
+    plan = json.loads(plan_file.read_text())
+    extra: list[str] = []
+    for stage in (Stage(**s) for s in plan["stages"]):
+        run_dir = method_dir / stage.name
+        run_dir.mkdir(exist_ok=True)
+        done = run_dir / "done.json"
+        if not done.is_file():
+            command = stage_command(stage, run_dir, extra)
+            (run_dir / "command.txt").write_text(" ".join(command[1:]) + "\n")
+            code = train_logged(run_dir, command)
+            if code != 0:
+                return f"{method}/{stage.name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
+            done.write_text(json.dumps({"stage": vars(stage), "command": " ".join(command[1:])}, indent=2))
+        extra = [f"model.network.feature_init={best_checkpoint(run_dir)}"]  # the next stage starts from these features
+    return f"{method}: done"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.cpu_budget", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="train the methods (resumable)")
+    run.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
+    run.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated, of: {', '.join(METHODS)}")
+    run.add_argument("--budget-h", type=float, default=1.0, help="CPU hours per method, one thread (default 1)")
+    run.add_argument("--parallel", type=int, default=2, help="methods trained at once, one thread each (default 2)")
+    rep = sub.add_parser("report", help="curves, table and plot")
+    rep.add_argument("--root", type=Path, required=True)
+    rep.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    args = parser.parse_args(argv)
+
+    def action() -> None:
+        if args.command == "report":
+            from benchmarks.cpu_budget_report import report
+
+            for path in report(args.root, args.out):
+                print(f"wrote {path}")
+            return
+        names = [n.strip() for n in args.methods.split(",") if n.strip()]
+        unknown = sorted(set(names) - set(METHODS))
+        if unknown:
+            raise ConfigError(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
+        if not math.isfinite(args.budget_h) or args.budget_h <= 0:
+            raise ConfigError(f"--budget-h must be positive, got {args.budget_h}")
+        with ThreadPoolExecutor(max_workers=max(1, args.parallel)) as pool:
+            for status in pool.map(lambda n: run_method(n, args.root, args.budget_h), names):
+                print(status, flush=True)
+
+    return exit_code_of(action)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
