@@ -17,6 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import subprocess
 import sys
 import threading
 import time
@@ -25,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from benchmarks.cpu_recipes import code_version, train_logged
+from benchmarks.cpu_recipes import CPU_TRAINING_ENV, code_version, train_logged
 from src.errors import ConfigError, exit_code_of
 
 #: The learned methods of the grid, in the grid's order.
@@ -87,7 +89,17 @@ def budget_schedule(cfg: Any) -> list[str]:
     raise ConfigError(f"{cfg.model.network._target_}: no budget mapping for schedule {spec}")
 
 
-def probe_step_seconds(model: str, width: float, batch: int, steps: int = 2) -> float:
+def probe_step_seconds(model: str, width: float, batch: int) -> float:
+    """:func:`time_step` in a child process (one thread), so that a step too large for the memory is
+    measured as ``inf`` (the child killed) rather than taking the planner down with it."""
+    code = (f"from benchmarks.cpu_budget import time_step; print(time_step({model!r}, {width!r}, {batch!r}))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, **CPU_TRAINING_ENV})
+    if result.returncode != 0:
+        return math.inf
+    return float(result.stdout.strip().splitlines()[-1])
+
+
+def time_step(model: str, width: float, batch: int, steps: int = 2) -> float:
     """CPU seconds of one training step (forward, loss, backward, Adam) of ``model`` at ``width``, one
     thread, fresh weights, ``batch`` pairs of :data:`PROBE_POINTS` points; the first step is not timed."""
     import torch
@@ -150,6 +162,8 @@ def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[
         if _steps_for(budget_h * 3600, probes[str(width)]) >= MIN_STEPS:
             break
     step_s = probes[str(width)]
+    if not math.isfinite(step_s):
+        raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} (out of memory?)")
     stages = []
     budget_s = budget_h * 3600
     if method == "pointnetlk":  # the classifier stage's share: the authors' epochs times the probed step costs
