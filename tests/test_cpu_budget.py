@@ -1,0 +1,111 @@
+"""benchmarks.cpu_budget: each method's recipe mapped onto one CPU budget, the width rule, the two-stage
+PointNetLK plan, and resumable, chained runs (training itself replaced by a recorder)."""
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from benchmarks import cpu_budget
+from benchmarks.cpu_budget import MIN_STEPS, OVERHEAD, Stage, budget_schedule, compose_recipe, plan_method, stage_command
+
+
+def _fractions(overrides: list[str]) -> list[float]:
+    (spec,) = [o for o in overrides if o.startswith("+model.scheduler=")]
+    return [float(x) for x in re.search(r"fractions: \[([^\]]*)\]", spec).group(1).split(",")]
+
+
+@pytest.mark.parametrize("method", ["omnet", "dcp", "prnet", "idam"])
+def test_milestones_become_the_same_fractions_of_the_budget_run(method):
+    cfg = compose_recipe(method)
+    spec = OmegaConf.to_container(cfg.model.scheduler)
+    length = cfg.trainer.max_epochs if cfg.trainer.max_epochs > 0 else cfg.trainer.max_steps
+    assert _fractions(budget_schedule(cfg)) == pytest.approx([m / length for m in spec["milestones"]], rel=1e-3)
+
+
+def test_omnet_trains_with_the_official_codes_recipe():
+    cfg = compose_recipe("omnet")
+    assert cfg.data.batch_size == 16 and cfg.model.lr == pytest.approx(1e-4)
+    assert _fractions(budget_schedule(cfg)) == pytest.approx([0.7, 0.9])
+
+
+def test_plateau_patience_becomes_the_same_share_of_the_validations():
+    cfg = compose_recipe("deepgmr")
+    patience = round(cfg.model.scheduler.patience / cfg.trainer.max_epochs * cpu_budget.VALIDATIONS)
+    assert budget_schedule(cfg) == [f"model.scheduler.patience={patience}", "+model.scheduler.interval=validation"]
+
+
+@pytest.mark.parametrize("method", ["rpmnet", "fmr", "pointnetlk_revisited"])
+def test_a_recipe_without_schedule_stays_without(method):
+    assert budget_schedule(compose_recipe(method)) == []
+
+
+def _cost(seconds_at_full_width: float):
+    calls = []
+
+    def probe(model: str, width: float, batch: int) -> float:
+        calls.append((model, width, batch))
+        return seconds_at_full_width * width**2
+    return probe, calls
+
+
+def test_the_widest_width_that_buys_the_minimum_steps_is_chosen():
+    probe, calls = _cost(30.0)  # 1.0 -> 109 steps, 0.5 -> 436, 0.25 -> 1745 in an hour
+    plan = plan_method("dcp", 1.0, probe)
+    assert [w for _, w, _ in calls] == [1.0, 0.5, 0.25] and plan["width"] == 0.25
+    (stage,) = plan["stages"]
+    assert stage["batch"] == compose_recipe("dcp").data.batch_size
+    assert stage["max_steps"] == int(3600 / (30.0 * 0.25**2 * OVERHEAD)) >= MIN_STEPS
+
+
+def test_the_authors_width_when_the_budget_buys_enough_steps():
+    probe, calls = _cost(1.0)
+    assert plan_method("fmr", 1.0, probe)["width"] == 1.0 and len(calls) == 1
+
+
+def test_a_step_that_never_fits_is_refused():
+    with pytest.raises(cpu_budget.ConfigError, match="out of memory"):
+        plan_method("prnet", 1.0, lambda model, width, batch: float("inf"))
+
+
+def test_pointnetlks_classifier_stage_takes_its_share_of_the_same_budget():
+    probe, _ = _cost(2.0)
+    plan = plan_method("pointnetlk", 1.0, probe)
+    classifier, lk = (Stage(**s) for s in plan["stages"])
+    assert (classifier.model, lk.model) == ("pointnet_classifier", "pointnetlk")
+    assert classifier.budget_cpu_h + lk.budget_cpu_h == pytest.approx(1.0)
+    epochs = compose_recipe("pointnet_classifier").trainer.max_epochs, compose_recipe("pointnetlk").trainer.max_epochs
+    assert classifier.budget_cpu_h / lk.budget_cpu_h == pytest.approx(epochs[0] / epochs[1])  # same step cost here
+    assert "data=synthetic" in classifier.overrides
+
+
+def test_runs_resume_and_chain_the_classifier_features(tmp_path, monkeypatch):
+    probe, _ = _cost(2.0)
+    monkeypatch.setattr(cpu_budget, "plan_method", lambda method, budget_h: plan_method(method, budget_h, probe))
+    commands = []
+
+    def train(run_dir: Path, command: list[str]) -> int:
+        commands.append(command)
+        (run_dir / "checkpoints").mkdir(exist_ok=True)
+        (run_dir / "checkpoints" / "best-9.ckpt").write_bytes(b"")
+        return 0
+
+    monkeypatch.setattr(cpu_budget, "train_logged", train)
+    assert cpu_budget.run_method("pointnetlk", tmp_path, 1.0) == "pointnetlk: done"
+    classifier, lk = commands
+    best = tmp_path / "pointnetlk" / "classifier" / "checkpoints" / "best-9.ckpt"
+    assert f"model.network.feature_init={best}" in lk and not any(c.startswith("model.network.feature_init") for c in classifier)
+    assert "callbacks.clock.budget_cpu_hours=" + f"{json.loads((tmp_path / 'pointnetlk' / 'plan.json').read_text())['stages'][1]['budget_cpu_h']:.4f}" in lk
+    assert (tmp_path / "pointnetlk" / "pointnetlk" / "command.txt").read_text().startswith("-m src.train")
+    assert cpu_budget.run_method("pointnetlk", tmp_path, 1.0) == "pointnetlk: done" and len(commands) == 2  # done: skipped
+
+
+def test_an_interrupted_stage_resumes_from_its_last_checkpoint(tmp_path):
+    stage = Stage("dcp", "dcp", 0.25, 32, 1.0, 1.0, 1000)
+    assert not any(c.startswith("ckpt_path=") for c in stage_command(stage, tmp_path, []))
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"")
+    assert stage_command(stage, tmp_path, [])[-1] == f"ckpt_path={tmp_path / 'checkpoints' / 'last.ckpt'}"
+    assert f"trainer.val_check_interval={1000 // cpu_budget.VALIDATIONS}" in stage_command(stage, tmp_path, [])
