@@ -5,6 +5,7 @@ import json
 import re
 from pathlib import Path
 
+import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
@@ -109,3 +110,36 @@ def test_an_interrupted_stage_resumes_from_its_last_checkpoint(tmp_path):
     (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"")
     assert stage_command(stage, tmp_path, [])[-1] == f"ckpt_path={tmp_path / 'checkpoints' / 'last.ckpt'}"
     assert f"trainer.val_check_interval={1000 // cpu_budget.VALIDATIONS}" in stage_command(stage, tmp_path, [])
+
+
+def _fake_stage(run_dir: Path, rows: list[dict], test: dict | None = None, done: bool = True) -> None:
+
+    (run_dir / "csv" / "version_0").mkdir(parents=True)
+    pd.DataFrame(rows).to_csv(run_dir / "csv" / "version_0" / "metrics.csv", index=False)
+    if test is not None:
+        (run_dir / "metrics.json").write_text(json.dumps({"metrics": test}))
+    if done:
+        (run_dir / "done.json").write_text("{}")
+
+
+def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp_path):
+    from benchmarks.cpu_budget_report import collect, report
+
+    probe, _ = _cost(2.0)
+    for method in ("dcp", "pointnetlk"):
+        (tmp_path / method).mkdir()
+        (tmp_path / method / "plan.json").write_text(json.dumps(plan_method(method, 1.0, probe)))
+    val = lambda step, hours, err: {"step": step, "time/cpu_hours": hours, "val/Error(R)": err, "val/Error(t)": err / 100}  # noqa: E731
+    _fake_stage(tmp_path / "dcp" / "dcp", [val(9, 0.5, 30.0), val(19, 1.0, 20.0), {"step": 20, "time/cpu_hours": 1.01}],
+                {"Error(R)": 21.0, "Error(t)": 0.2})
+    _fake_stage(tmp_path / "pointnetlk" / "classifier", [{"step": 4, "time/cpu_hours": 0.25, "val/loss": 1.0}])
+    _fake_stage(tmp_path / "pointnetlk" / "pointnetlk", [val(9, 0.25, 40.0), val(19, 0.5, 35.0)], done=False)
+    curves, table = collect(tmp_path)
+    lk = curves[curves["method"] == "pointnetlk"]
+    assert list(lk["cpu_hours"]) == pytest.approx([0.5, 0.75]) and list(lk["Error(R)"]) == [40.0, 35.0]
+    table = table.set_index("method")
+    assert table.loc["dcp", "steps"] == 21 and table.loc["dcp", "CPU h"] == pytest.approx(1.01)
+    assert table.loc["dcp", "best val Error(R)"] == 20.0 and table.loc["dcp", "test Error(R)"] == 21.0
+    assert table.loc["pointnetlk", "steps"] == "5 + 20" and table.loc["pointnetlk", "CPU h"] == pytest.approx(0.75)
+    assert not table.loc["pointnetlk", "done"] and pd.isna(table.loc["pointnetlk", "test Error(R)"])
+    assert all(p.is_file() and p.stat().st_size > 0 for p in report(tmp_path, tmp_path / "out"))

@@ -1,0 +1,110 @@
+"""The equal-budget study's report: validation curves against CPU hours, the table, the plot.
+
+Reads the run folders of ``python -m benchmarks.cpu_budget run --root RUNS`` (each method's ``plan.json``,
+its stages' CSV logs and test ``metrics.json``); a stage that precedes the method's registration stage
+(PointNetLK's classifier) shifts its curve by the CPU hours it took.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from benchmarks.cpu_budget import METHODS, Stage
+from src.errors import ConfigError
+from src.reporting import read_csv_logs
+
+CURVE_COLUMNS = {"time/cpu_hours": "cpu_hours", "val/Error(R)": "Error(R)", "val/Error(t)": "Error(t)"}
+
+
+def _stage_cpu_hours(logs: pd.DataFrame) -> float:
+    return float(logs["time/cpu_hours"].max()) if "time/cpu_hours" in logs else 0.0
+
+
+def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
+    """(plan, validation rows of the registration stage: step, cpu_hours (all stages), Error(R), Error(t))."""
+    plan = json.loads((method_dir / "plan.json").read_text())
+    offset, curve = 0.0, pd.DataFrame(columns=["step", *CURVE_COLUMNS.values()])
+    for stage in (Stage(**s) for s in plan["stages"]):
+        logs = read_csv_logs(method_dir / stage.name)
+        if logs.empty:
+            break
+        if "val/Error(R)" in logs:
+            rows = logs.dropna(subset=["val/Error(R)"])[["step", *CURVE_COLUMNS]].rename(columns=CURVE_COLUMNS)
+            curve = rows.assign(cpu_hours=rows["cpu_hours"] + offset)
+        offset += _stage_cpu_hours(logs)
+    return plan, curve.assign(method=method_dir.name)
+
+
+def _test_metrics(run_dir: Path) -> dict[str, float]:
+    path = run_dir / "metrics.json"
+    return json.loads(path.read_text())["metrics"] if path.is_file() else {}
+
+
+def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
+    """One row of the table: what was trained, what it cost, where validation and test ended."""
+    stages = [Stage(**s) for s in plan["stages"]]
+    last = stages[-1]
+    logs = [read_csv_logs(method_dir / s.name) for s in stages]
+    steps = [int(frame["step"].max()) + 1 if not frame.empty else 0 for frame in logs]
+    row = {"method": method_dir.name, "width": plan["width"], "batch": last.batch, "steps": steps[-1],
+           "planned steps": last.max_steps, "pairs seen": steps[-1] * last.batch,
+           "CPU h": sum(_stage_cpu_hours(frame) for frame in logs if not frame.empty)}
+    if len(stages) > 1:
+        row["steps"] = " + ".join(str(n) for n in steps)
+        row["pairs seen"] = sum(n * s.batch for n, s in zip(steps, stages))
+    if not curve.empty:
+        best = curve.loc[curve["Error(R)"].idxmin()]
+        row.update({"last val Error(R)": curve["Error(R)"].iloc[-1], "last val Error(t)": curve["Error(t)"].iloc[-1],
+                    "best val Error(R)": best["Error(R)"], "best val Error(t)": best["Error(t)"]})
+    test = _test_metrics(method_dir / last.name)
+    row.update({"test Error(R)": test.get("Error(R)"), "test Error(t)": test.get("Error(t)"),
+                "done": (method_dir / last.name / "done.json").is_file()})
+    return row
+
+
+def collect(root: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(curves of every method under ``root``, the summary table), in the grid's method order."""
+    dirs = [root / m for m in METHODS if (root / m / "plan.json").is_file()]
+    if not dirs:
+        raise ConfigError(f"no method run under {root}: run `python -m benchmarks.cpu_budget run --root {root}` first")
+    curves, rows = [], []
+    for method_dir in dirs:
+        plan, curve = method_curve(method_dir)
+        curves.append(curve)
+        rows.append(summary_row(method_dir, plan, curve))
+    return pd.concat(curves, ignore_index=True), pd.DataFrame(rows)
+
+
+def plot(curves: pd.DataFrame, out: Path, budget_h: float) -> None:
+    """Validation Error(R) against CPU hours, one line per method, log y."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    for method, group in curves.groupby("method", sort=False):
+        ax.plot(group["cpu_hours"], group["Error(R)"], marker="o", markersize=2.5, label=method)
+    ax.axvline(budget_h, color="grey", linestyle=":", linewidth=1)
+    ax.set(xlabel="training CPU hours (one thread)", ylabel="validation Error(R) [deg], lower is better", yscale="log",
+           title="Every learned method on real airplanes (TS, PRNet manner, clean), one CPU budget")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def report(root: Path, out: Path) -> list[Path]:
+    """``cpu_budget_curves.csv``, ``cpu_budget_summary.md`` and ``cpu_budget.png`` in ``out``."""
+    curves, table = collect(root)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "cpu_budget_curves.csv", out / "cpu_budget_summary.md", out / "cpu_budget.png"]
+    curves.to_csv(paths[0], index=False)
+    paths[1].write_text(table.to_markdown(index=False, floatfmt=".3f") + "\n")
+    budget_h = json.loads((root / table["method"].iloc[0] / "plan.json").read_text())["budget_cpu_h"]
+    plot(curves, paths[2], budget_h)
+    return paths
