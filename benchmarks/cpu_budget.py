@@ -18,6 +18,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import subprocess
 import sys
 import threading
@@ -89,11 +90,20 @@ def budget_schedule(cfg: Any) -> list[str]:
     raise ConfigError(f"{cfg.model.network._target_}: no budget mapping for schedule {spec}")
 
 
+#: Address space a probed step may use: half the machine's 24 GiB, so that two runs and the rest fit beside it.
+PROBE_MEMORY_BYTES = 12 * 2**30
+
+
+def _limit_memory() -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (PROBE_MEMORY_BYTES, PROBE_MEMORY_BYTES))
+
+
 def probe_step_seconds(model: str, width: float, batch: int) -> float:
-    """:func:`time_step` in a child process (one thread), so that a step too large for the memory is
-    measured as ``inf`` (the child killed) rather than taking the planner down with it."""
+    """:func:`time_step` in a child process (one thread, at most :data:`PROBE_MEMORY_BYTES`), so that a step
+    too large for the memory is measured as ``inf`` rather than taking the planner (or a run) down with it."""
     code = (f"from benchmarks.cpu_budget import time_step; print(time_step({model!r}, {width!r}, {batch!r}))")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, **CPU_TRAINING_ENV})
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env={**os.environ, **CPU_TRAINING_ENV}, preexec_fn=_limit_memory)
     if result.returncode != 0:
         return math.inf
     return float(result.stdout.strip().splitlines()[-1])
@@ -163,7 +173,8 @@ def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[
             break
     step_s = probes[str(width)]
     if not math.isfinite(step_s):
-        raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} (out of memory?)")
+        raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} in "
+                          f"{PROBE_MEMORY_BYTES / 2**30:.0f} GiB (out of memory?)")
     stages = []
     budget_s = budget_h * 3600
     if method == "pointnetlk":  # the classifier stage's share: the authors' epochs times the probed step costs

@@ -143,3 +143,11 @@ def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp
     assert table.loc["pointnetlk", "steps"] == "5 + 20" and table.loc["pointnetlk", "CPU h"] == pytest.approx(0.75)
     assert not table.loc["pointnetlk", "done"] and pd.isna(table.loc["pointnetlk", "test Error(R)"])
     assert all(p.is_file() and p.stat().st_size > 0 for p in report(tmp_path, tmp_path / "out"))
+
+
+def test_the_probe_times_a_step_in_a_child_and_reports_one_that_does_not_fit_as_infinite(monkeypatch):
+    import math
+
+    assert 0 < cpu_budget.probe_step_seconds("pointnetlk_revisited", 0.0625, 4) < math.inf
+    monkeypatch.setattr(cpu_budget, "PROBE_MEMORY_BYTES", 256 * 2**20)  # not even torch fits
+    assert cpu_budget.probe_step_seconds("pointnetlk_revisited", 0.0625, 4) == math.inf
