@@ -66,3 +66,22 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
     module.configure_optimizers()
     module = instantiate(small).eval()
     assert_reloads_the_same(module, tmp_path / "idam.ckpt", *_batch(b=2, n=96)[:2])
+
+
+def test_the_similarity_images_first_layer_per_point_equals_the_layer_on_the_built_image():
+    """Values and gradients, float64: W[f_i; g_j; e_ij] computed per point = the Linear on the concatenation."""
+    from baselines.learned.idam import similarity_first_layer
+
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(2 * 5 + 4, 7).double()
+    feat_src = torch.randn(2, 6, 5, dtype=torch.float64, requires_grad=True)
+    feat_ref = torch.randn(2, 4, 5, dtype=torch.float64, requires_grad=True)
+    geometry = torch.randn(2, 6, 4, 4, dtype=torch.float64, requires_grad=True)
+    image = torch.cat((feat_src.unsqueeze(2).expand(-1, -1, 4, -1), feat_ref.unsqueeze(1).expand(-1, 6, -1, -1), geometry), dim=-1)
+    expected = linear(image)
+    got = similarity_first_layer(linear, feat_src, feat_ref, geometry)
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+    weights = torch.randn_like(expected)
+    grads = lambda out: torch.autograd.grad((out * weights).sum(), (feat_src, feat_ref, geometry, linear.weight))  # noqa: E731
+    for a, b in zip(grads(got), grads(expected)):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

@@ -15,7 +15,8 @@ defaults of ``main.py``):
   neighbours of the chosen source points (so the i-th source and i-th reference point correspond);
 * ``num_iters`` = 3 iterations, each with its own weights: the distance-aware similarity "image"
   [f_i, g_j, ‖x_i − y_j‖, (x_i − y_j)/‖x_i − y_j‖] (B, K, K, 2·64+4) → 32-32 (BN + ReLU, last plain);
-  soft point elimination: max over j → 32-1 weight logits; similarity: 32-32-1, clamped to ±20;
+  soft point elimination: max over j → 32-1 weight logits (the image's first Linear is computed per point and
+  broadcast, :func:`similarity_first_layer`, the same function without the (B, K, K, 132) tensor); similarity: 32-32-1, clamped to ±20;
   correspondences = row argmax; weights = sigmoid(logits) zeroed below their median and normalised;
   weighted Procrustes; the pose is detached (no gradient through the SVD) and the selected source
   points are moved before the next iteration.
@@ -54,6 +55,18 @@ from src.models.base import scaled
 def _gather(x: Tensor, idx: Tensor) -> Tensor:
     """x (B, N, C) at idx (B, K) → (B, K, C)."""
     return gather_neighbours(x, idx.unsqueeze(1)).squeeze(1)
+
+
+def similarity_first_layer(linear: nn.Linear, feat_src: Tensor, feat_ref: Tensor, geometry: Tensor) -> Tensor:
+    """``linear`` on the distance-aware similarity image [f_i, g_j, geometry_ij] (B, K, M, ·) without building it.
+
+    W[f_i; g_j; e_ij] = W₁f_i + W₂g_j + W₃e_ij: the feature parts are multiplied once per point (K + M
+    rows, not K·M) and broadcast; equal to ``linear(torch.cat(...))`` up to rounding."""
+    c = feat_src.shape[-1]
+    weight = linear.weight
+    rows = F.linear(feat_src, weight[:, :c]).unsqueeze(2)
+    cols = F.linear(feat_ref, weight[:, c:2 * c]).unsqueeze(1)
+    return F.linear(geometry, weight[:, 2 * c:], linear.bias) + rows + cols
 
 
 class GNN(nn.Module):
@@ -126,8 +139,6 @@ class IDAM(nn.Module):
             with torch.no_grad():
                 min_dist, targets = torch.cdist(se3_apply(transform_gt, src), ref).min(dim=-1)
                 match_labels = (min_dist < self.match_dist).to(src.dtype)
-        pair_feat = torch.cat((feat_src.unsqueeze(2).expand(-1, -1, num_keep, -1),
-                               feat_ref.unsqueeze(1).expand(-1, num_keep, -1, -1)), dim=-1)
         total = torch.eye(4, dtype=points_src.dtype, device=points_src.device).expand(b, 4, 4)
         out: dict = {"transforms": [], "similarities": [], "weight_logits": [], "correspondences": [],
                      "significance": (_gather(sig_src.unsqueeze(-1), src_idx).squeeze(-1),
@@ -136,7 +147,8 @@ class IDAM(nn.Module):
         for i in range(self.num_iters):
             diff = src.unsqueeze(2) - ref.unsqueeze(1)
             dist = diff.norm(dim=-1, keepdim=True)
-            hidden = self.sim_features[i](torch.cat((pair_feat, dist, diff / (dist + 1e-8)), dim=-1))
+            first, rest = self.sim_features[i].layers[0], self.sim_features[i].layers[1:]
+            hidden = rest(similarity_first_layer(first, feat_src, feat_ref, torch.cat((dist, diff / (dist + 1e-8)), dim=-1)))
             logits = self.weight_logits[i](hidden.amax(dim=2)).squeeze(-1)
             similarity = self.sim_scores[i](hidden).squeeze(-1).clamp(-20.0, 20.0)
             corr = similarity.argmax(dim=-1)
