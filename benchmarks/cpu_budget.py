@@ -23,12 +23,11 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from benchmarks.cpu_recipes import CPU_TRAINING_ENV, code_version, train_logged
+from benchmarks.cpu_recipes import CPU_TRAINING_ENV, code_version, run_each, train_logged
 from src.errors import ConfigError, exit_code_of
 
 #: The learned methods of the grid, in the grid's order.
@@ -259,15 +258,8 @@ def main(argv: list[str] | None = None) -> int:
             for path in report(args.root, args.out):
                 print(f"wrote {path}")
             return
-        names = [n.strip() for n in args.methods.split(",") if n.strip()]
-        unknown = sorted(set(names) - set(METHODS))
-        if unknown:
-            raise ConfigError(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
-        if not math.isfinite(args.budget_h) or args.budget_h <= 0:
-            raise ConfigError(f"--budget-h must be positive, got {args.budget_h}")
-        with ThreadPoolExecutor(max_workers=max(1, args.parallel)) as pool:
-            for status in pool.map(lambda n: run_method(n, args.root, args.budget_h), names):
-                print(status, flush=True)
+        run_each(args.methods, METHODS, "methods", ("--budget-h", args.budget_h), args.parallel,
+                 lambda n: run_method(n, args.root, args.budget_h))
 
     return exit_code_of(action)
 

@@ -27,6 +27,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -138,6 +139,22 @@ def run_recipe(name: str, root: Path, budget_min: float, val_every: int) -> str:
     return f"{name}: finished {plan['max_steps']} steps"
 
 
+def run_each(names: str, known: Sequence[str], what: str, budget: tuple[str, float], parallel: int,
+             run_one: Callable[[str], str]) -> None:
+    """``run_one`` for each of the comma-separated ``names`` (all of ``known``), ``parallel`` at once, printing
+    each status line; ConfigError for an unknown name or a budget (``(flag, value)``) that is not positive."""
+    chosen = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = sorted(set(chosen) - set(known))
+    if unknown:
+        raise ConfigError(f"unknown {what} {unknown}; known: {', '.join(known)}")
+    flag, value = budget
+    if not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{flag} must be positive, got {value}")
+    with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+        for status in pool.map(run_one, chosen):
+            print(status, flush=True)
+
+
 def train_logged(run_dir: Path, command: list[str]) -> int:
     """Run one training command with :data:`CPU_TRAINING_ENV`, appending it and its output to
     ``run_dir/train.log`` (the command first, so the run folder says how to resume); its exit code."""
@@ -229,15 +246,8 @@ def main(argv: list[str] | None = None) -> int:
             for path in report(args.root, args.out):
                 print(f"wrote {path}")
             return
-        names = [n.strip() for n in args.recipes.split(",") if n.strip()]
-        unknown = sorted(set(names) - set(RECIPES))
-        if unknown:
-            raise ConfigError(f"unknown recipes {unknown}; known: {', '.join(RECIPES)}")
-        if not math.isfinite(args.budget_min) or args.budget_min <= 0:
-            raise ConfigError(f"--budget-min must be positive, got {args.budget_min}")
-        with ThreadPoolExecutor(max_workers=max(1, args.parallel)) as pool:
-            for status in pool.map(lambda n: run_recipe(n, args.root, args.budget_min, args.val_every), names):
-                print(status, flush=True)
+        run_each(args.recipes, RECIPES, "recipes", ("--budget-min", args.budget_min), args.parallel,
+                 lambda n: run_recipe(n, args.root, args.budget_min, args.val_every))
 
     return exit_code_of(action)
 
