@@ -22,9 +22,10 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from src.distributed import distributed_job_scope, global_rank
-from src.errors import ConfigError, exit_on_user_error, user_error_behind
+from src.errors import ConfigError, Interrupted, exit_on_user_error, user_error_behind
 from src.files import write_text_atomic
 from src.paths import REPO_ROOT
+from src.signals import interruptible
 from src.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -69,10 +70,12 @@ def failure_reason(err: BaseException) -> str:
 
 
 def write_failure(output_dir: Path, err: BaseException) -> Path:
-    """``failure.json`` (``failure.rank<r>.json`` on other DDP ranks): what failed, where and why."""
+    """``failure.json`` (``failure.rank<r>.json`` on other DDP ranks): what failed, where and why; an
+    interrupted run (status ``interrupted``) also records its signal, step and the checkpoint to resume from."""
     rank = global_rank()
+    interrupted = isinstance(err, Interrupted)
     record: dict[str, Any] = {
-        "status": "failed",
+        "status": "interrupted" if interrupted else "failed",
         "reason": failure_reason(err),
         "error_type": type(err).__name__,
         "message": str(err).strip(),
@@ -83,6 +86,8 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         "pid": os.getpid(),
         "rank": rank,
     }
+    if interrupted:
+        record.update(reason=str(err), signal=err.signal_name, step=err.step, resume_from=err.checkpoint)
     if HydraConfig.initialized():
         hc = HydraConfig.get()
         record["overrides"] = list(hc.overrides.task)
@@ -101,7 +106,8 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
     as a non-zero exit makes Lightning kill the sweep.
 
     Wrap it inside :func:`~src.errors.exit_on_user_error` so a re-raised UserError stays one line. A
-    job that succeeds removes a stale ``failure.json`` left in its dir by an earlier attempt.
+    job that succeeds removes a stale ``failure.json`` left in its dir by an earlier attempt. A job
+    stopped by SIGTERM/SIGINT (:mod:`src.signals`) is recorded and always re-raised: the sweep stops too.
     """
 
     @functools.wraps(task)
@@ -109,12 +115,13 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
         mode = resolve_on_failure(cfg.get("on_failure"))
         output_dir = _job_output_dir(cfg)
         try:
-            validate_config(cfg)
-            with distributed_job_scope(f"on_failure={mode}"):
-                result = task(cfg)
+            with interruptible():
+                validate_config(cfg)
+                with distributed_job_scope(f"on_failure={mode}"):
+                    result = task(cfg)
         except Exception as err:
             path = write_failure(output_dir, err)
-            if mode == "raise":
+            if mode == "raise" or isinstance(err, Interrupted):
                 raise
             log.error("job failed, recorded in %s", path, exc_info=err)
             print(f"error: job failed ({failure_reason(err)}); recorded in {path}", file=sys.stderr)
