@@ -15,14 +15,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from src.distributed import distributed_job_scope, global_rank
-from src.errors import ConfigError, Interrupted, exit_on_user_error, user_error_behind
+from src.cli import hydra_command
+from src.errors import ConfigError, Interrupted, user_error_behind
 from src.files import write_text_atomic
 from src.paths import REPO_ROOT
 from src.signals import interruptible
@@ -135,11 +135,10 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
 
 
 def job_main(task: Callable[[DictConfig], Any]) -> Callable[[], None]:
-    """The command-line entry of a job on ``conf/config.yaml``: Hydra's main around ``task``, whose
-    failures are recorded (:func:`record_failures`) and whose UserError is one ``error:`` line and
-    exit status 2 (:func:`~src.errors.exit_on_user_error`)."""
-    entry = exit_on_user_error(record_failures(task))
-    return hydra.main(version_base="1.3", config_path=str(REPO_ROOT / "conf"), config_name="config")(entry)
+    """The command-line entry of a job on ``conf/config.yaml`` (:func:`~src.cli.hydra_command`): Hydra's
+    main around ``task``, whose failures are recorded (:func:`record_failures`) and whose UserError, like
+    an override Hydra cannot apply, is one ``error:`` line and exit status 2."""
+    return hydra_command(record_failures(task), REPO_ROOT / "conf", "config")
 
 
 def _find_job_dirs(sweep_dir: Path) -> list[Path]:

@@ -29,6 +29,8 @@ from typing import Any
 import lightning as L
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from lightning.fabric.utilities.seed import pl_worker_init_function
+
 from src.errors import Interrupted
 
 INTERRUPT_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM)
@@ -53,6 +55,16 @@ def restore(previous: dict[signal.Signals, Any]) -> None:
     """Put back the handlers :func:`install` replaced."""
     for signum, handler in previous.items():
         signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+
+
+def loader_worker_init(worker_id: int, rank: int) -> None:
+    """``worker_init_fn`` of the loaders: the worker ignores SIGTERM/SIGINT (torch's workers die on
+    SIGTERM, which ``timeout`` sends to the whole process group, and the main process would then stop
+    mid-step), then Lightning's worker seeding as ``seed_everything(workers=True)`` asks for it."""
+    for signum in INTERRUPT_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+    if int(os.environ.get("PL_SEED_WORKERS", 0)):
+        pl_worker_init_function(worker_id, rank)
 
 
 def _raise(signum: int, frame: FrameType | None) -> None:

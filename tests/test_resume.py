@@ -83,20 +83,21 @@ SIGNAL_RUN = [o for o in RESUME_RUN if "periodic_checkpoint" not in o] + [f"trai
 
 
 def _signalled_cli_run(tmp, run, signum: int) -> subprocess.CompletedProcess:
-    """``python -m src.train`` (the real command) paused at the start of step 3, sent ``signum`` from here."""
+    """``python -m src.train`` (the real command, one loader worker) paused at the start of step 3, sent
+    ``signum`` from here to its whole process group, as ``timeout`` and a terminal's Ctrl+C do."""
     ready = tmp / f"ready{signum}"
     pause = ["+callbacks.pause._target_=registration_helpers.PauseAt", "+callbacks.pause.step=3",
              f"+callbacks.pause.ready={ready}"]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(CONF.parent / "tests"), os.environ.get("PYTHONPATH", "")]),
            "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "src.train", *TINY, f"data.cache_root={tmp / 'cache'}", *SIGNAL_RUN, *pause,
-               f"hydra.run.dir={run}"]
+               "data.num_workers=1", f"hydra.run.dir={run}"]
     process = subprocess.Popen(command, cwd=CONF.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True)
+                               text=True, start_new_session=True)
     deadline = time.monotonic() + 600
     while not ready.exists() and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
-    process.send_signal(signum)
+    os.killpg(process.pid, signum)
     stdout, stderr = process.communicate(timeout=300)
     return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardS
 from src.data.prepare import ensure_cache
 from src.data.transforms import build_pair_transforms
 from src.errors import ConfigError, DatasetError
+from src.signals import loader_worker_init
 
 STAGES = ("train", "val", "test")
 NORMALS = ("none", "cache")
@@ -165,8 +167,10 @@ class RegistrationDataModule(L.LightningDataModule):
         return data.normals
 
     def _loader_options(self) -> dict[str, Any]:
+        rank = self.trainer.global_rank if self.trainer is not None else 0
         return {"num_workers": self.num_workers, "pin_memory": self.pin_memory,
-                "persistent_workers": self.persistent_workers}
+                "persistent_workers": self.persistent_workers,
+                "worker_init_fn": functools.partial(loader_worker_init, rank=rank)}
 
     def train_dataloader(self) -> DataLoader:
         self._require("train")
