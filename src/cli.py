@@ -93,7 +93,7 @@ def hydra_command(task: Callable[[DictConfig], Any], config_dir: Path, config_na
 
     @functools.wraps(entry)
     def command(*args: Any, **kwargs: Any) -> None:
-        os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # Hydra raises its errors instead of printing a report
+        os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises its errors instead of printing a report
         try:
             main(*args, **kwargs)
         except (ConfigCompositionException, OverrideParseException) as err:

@@ -84,7 +84,7 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
     if cfg.ckpt_path:
-        check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True)
+        check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
     save_resolved_config(cfg)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)

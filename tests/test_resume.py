@@ -27,7 +27,7 @@ from registration_helpers import (
 
 from src.callbacks import RngState, set_rng_states
 from src.data.dataset import EpochSampler
-from src.errors import ConfigError
+from src.errors import CheckpointError, ConfigError
 from src.reporting import read_csv_logs
 import src.train
 from src.train import train
@@ -129,6 +129,23 @@ def test_resume_with_another_batch_size_is_refused(uninterrupted):
     with pytest.raises(ConfigError, match="resume with the same batch size"):
         train(tiny_config(tmp, *RESUME_RUN, "data.batch_size=3", f"trainer.max_steps={RESUME_STEPS + 2}",
                           f"output_dir={tmp / 'other_batch'}", f"ckpt_path={tmp / 'full' / 'checkpoints' / 'last.ckpt'}"))
+
+
+@pytest.mark.parametrize("change, compared", [
+    ("model_scale=0.125", "checkpoint width=0.0625; config width=0.125"),
+    ("model.network.share_weights=true", "checkpoint share_weights=False; config share_weights=True"),
+    ("model.network.num_iters=2", "checkpoint num_iters=4; config num_iters=2"),
+])
+def test_resume_with_another_architecture_is_refused_in_one_line(uninterrupted, change, compared):
+    """A traceback of torch's load_state_dict, after config_resolved.yaml was overwritten with the new config."""
+    tmp, _ = uninterrupted
+    last = tmp / "full" / "checkpoints" / "last.ckpt"
+    recorded = (tmp / "full" / "config_resolved.yaml").read_text()
+    with pytest.raises(CheckpointError) as info:
+        train(tiny_config(tmp, *RESUME_RUN, change, f"output_dir={tmp / 'full'}", f"ckpt_path={last}"))
+    assert str(info.value) == (f"{last} holds another architecture than the config (model.network: {compared}): resume "
+                               "with the checkpoint's settings, or start a new run without ckpt_path")
+    assert (tmp / "full" / "config_resolved.yaml").read_text() == recorded
 
 
 def test_sampler_resume_skips_the_done_part_once():
