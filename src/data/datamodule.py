@@ -137,19 +137,23 @@ class RegistrationDataModule(L.LightningDataModule):
 
     def _refuse_leaks(self) -> None:
         """ConfigError if a training shape is also a validation or test shape (e.g. one category for
-        both sides of ``+exp=real_unseen_category``, or a carve-out that overlaps the training slice)."""
+        both sides of ``+exp=real_unseen_category``, a carve-out that overlaps the training slice, or
+        one shape id in two splits of a cache: shapes are compared by their ids across splits)."""
         if "train" not in self.splits:
             return
         split, train = select_shapes(self.cache, self.splits["train"], self.remove_axisymmetric, self.splits)
+        train_names = set(np.asarray(self.cache.split(split).shape_names)[train])
         for name in ("val", "test"):
             spec = self.splits.get(name)
-            if spec is None or spec["split"] != split:
+            if spec is None:
                 continue
-            shared = np.intersect1d(train, select_shapes(self.cache, spec, self.remove_axisymmetric, self.splits)[1])
-            if shared.size:
-                names = self.cache.split(split).shape_names
+            other, indices = select_shapes(self.cache, spec, self.remove_axisymmetric, self.splits)
+            names = np.asarray(self.cache.split(other).shape_names)[np.unique(indices)]
+            shared = [n for n in names if n in train_names]
+            if shared:
+                where = "" if other == split else f" (cache splits {split!r} and {other!r} list the same shape ids)"
                 raise ConfigError(
-                    f"{shared.size} shapes of the {name} set are also training shapes (first: {names[shared[0]]}): "
+                    f"{len(shared)} shapes of the {name} set are also training shapes{where} (first: {shared[0]}): "
                     f"make data.splits.train and data.splits.{name} disjoint (slice, exclude or other categories)"
                 )
 

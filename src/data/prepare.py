@@ -43,7 +43,9 @@ from src.data.cache import (
 from src.data.categories import half_categories
 from src.data.download import download as download_file
 from src.data.mesh import MeshShape
-from src.data.readers import READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, layout_of
+from src.data.readers import (
+    READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, check_split_identities, layout_of,
+)
 from src.data.sampling import METHOD, NORMALIZATION, sample_shape
 from src.errors import DatasetError, exit_code_of
 
@@ -272,6 +274,7 @@ def _build_modelnet(
         log.warning(missing.message)
     if not reader.entries:
         raise DatasetError(f"{reader.where}: no split can be built")
+    check_split_identities(reader.entries, {split: reader.split_list(split) for split in reader.entries})
     if layout in ("princeton_off", "scan_meshes"):
         compute, pair_sampling = _sample_mesh, _pair_sampling(sampling["num_samplings"])
     else:
