@@ -35,6 +35,10 @@ class CheckpointError(UserError):
     """Missing checkpoint or one written by another model."""
 
 
+class DiskError(UserError):
+    """A full disk, or a folder without write permission."""
+
+
 class Interrupted(Exception):
     """A run stopped by a signal (``SIGTERM`` from ``timeout``/SLURM/a sweep launcher, ``SIGINT``
     from Ctrl+C): it exits with status ``128 + signal`` (143, 130) after one ``error:`` line, and its

@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 
 from src.distributed import distributed_job_scope, global_rank
 from src.cli import hydra_command
-from src.errors import ConfigError, Interrupted, user_error_behind
+from src.errors import ConfigError, Interrupted, UserError, user_error_behind
 from src.files import write_text_atomic
 from src.paths import REPO_ROOT
 from src.signals import interruptible
@@ -120,7 +120,11 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
                 with distributed_job_scope(f"on_failure={mode}"):
                     result = task(cfg)
         except Exception as err:
-            path = write_failure(output_dir, err)
+            try:
+                path: Path | str = write_failure(output_dir, err)
+            except UserError as problem:  # e.g. the disk that stopped the job is full: report the job's error
+                log.error("failure.json not written: %s", problem)
+                path = f"nowhere ({problem})"
             if mode == "raise" or isinstance(err, Interrupted):
                 raise
             log.error("job failed, recorded in %s", path, exc_info=err)
