@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import hydra
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from src.data.datamodule import NORMALS
@@ -217,6 +218,20 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}={_show(value)} is invalid: it must be {rule.describe()}")
     for path, node in _object_nodes(cfg):
         _check_options(path, node)
+    _check_precision(cfg)
+
+
+#: Precisions Lightning silently replaces on the CPU (by bf16-mixed: there is no fp16 autocast there).
+_FP16 = ("16", "16-mixed")
+
+
+def _check_precision(cfg: DictConfig) -> None:
+    """ConfigError for an fp16 precision on the CPU, which Lightning would replace by bf16-mixed."""
+    precision, accelerator = str(_value(cfg, "trainer.precision")), _value(cfg, "trainer.accelerator")
+    on_cpu = accelerator == "cpu" or (accelerator in ("auto", _ABSENT) and not torch.cuda.is_available())
+    if precision in _FP16 and on_cpu:
+        raise ConfigError(f"trainer.precision={precision} on the CPU: Lightning would run bf16-mixed instead (no fp16 "
+                          "autocast on the CPU): use 32-true or bf16-mixed, or a GPU")
 
 
 def _object_nodes(node: Any, path: str = "") -> Iterator[tuple[str, DictConfig]]:

@@ -254,3 +254,46 @@ def test_write_atomic_removes_its_temporary_on_failure_and_live_temporaries_stay
     mine = tmp_path / f".last.ckpt.{os.getpid()}.tmp"  # a save in progress in a running process
     mine.write_text("x")
     assert remove_stale_temporaries(tmp_path) == [] and mine.exists()
+
+
+# --- what is recorded is what ran (issue 22) ----------------------------------------------------------
+
+
+def test_an_fp16_precision_on_the_cpu_is_refused():
+    """Lightning ran bf16-mixed instead, and config_resolved.yaml recorded 16-mixed."""
+    with pytest.raises(ConfigError, match=r"^trainer.precision=16-mixed on the CPU: Lightning would run bf16-mixed"):
+        validate_config(compose_config("trainer.accelerator=cpu", "trainer.precision=16-mixed"))
+    validate_config(compose_config("trainer.accelerator=cpu", "trainer.precision=bf16-mixed"))
+
+
+@pytest.mark.parametrize("override, message", [
+    # an evaluation-time study printed identical numbers under different labels
+    ("model.network.num_iters=2", "model.network.num_iters=2 cannot take effect: src.eval rebuilds the network from "
+                                  "{ckpt}, which has model.network.num_iters=4"),
+    ("model_scale=0.5", "model_scale=0.5 cannot take effect: src.eval rebuilds the network from {ckpt}, which has "
+                        "model.network.width=0.25"),
+    ("model.lr=0.1", "model.lr=0.1 cannot take effect: src.eval rebuilds the network from {ckpt}, which has "
+                     "model.lr=0.001"),
+    ("trainer.max_steps=5", "trainer.max_steps=5: a training setting, src.eval does not train: drop it"),
+])
+def test_eval_refuses_overrides_the_checkpoint_overrides(override, message, tmp_path, cache):
+    from src.recorded import refuse_unused_in_eval
+
+    cfg = _tiny(cache, tmp_path, override, f"ckpt_path={SHIPPED}")
+    hparams = torch.load(SHIPPED, map_location="cpu", weights_only=False, mmap=True)["hyper_parameters"]
+    with pytest.raises(ConfigError) as info:
+        refuse_unused_in_eval(cfg, hparams, str(SHIPPED), overrides=[override])
+    assert str(info.value).startswith(message.format(ckpt=SHIPPED))
+    same = _tiny(cache, tmp_path, "model.network.num_iters=4", "model_scale=0.25")  # what the checkpoint has: fine
+    refuse_unused_in_eval(same, hparams, str(SHIPPED), overrides=["model.network.num_iters=4", "model_scale=0.25"])
+
+
+def test_eval_follows_the_experiments_metric_convention(tmp_path, cache):
+    """The checkpoint's (PRNet manner: zyx) was used whatever partial=rpmnet asked for."""
+    module = src.eval.load_checkpoint(str(SHIPPED), _tiny(cache, tmp_path, "partial=rpmnet"))
+    assert module.hparams["euler_seq"] == "xyz" and module.test_metrics.euler_seq == "xyz"
+
+
+def test_train_refuses_weights(tmp_path, cache):
+    with pytest.raises(ConfigError, match=r"^weights=official:dcp_v1: src.train does not load weights"):
+        train(_tiny(cache, tmp_path, "weights=official:dcp_v1"))
