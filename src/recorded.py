@@ -1,10 +1,11 @@
 """What is recorded is what ran: a command-line override an entry point cannot honour is refused in one
 line (the key and why), instead of being written into ``config_resolved.yaml`` and ignored.
 
-* ``src.eval`` rebuilds the network (and its optimiser settings) from the checkpoint: a ``model.*`` or
-  ``model_scale`` override that differs from the checkpoint's value cannot take effect
-  (:func:`refuse_unused_in_eval`; the metric convention ``model.euler_seq`` does, it follows the experiment);
-  nor can a training-only setting (:data:`TRAINING_ONLY`).
+* ``src.eval`` rebuilds the network from the checkpoint: a ``model.network.*`` or ``model_scale`` override
+  that differs from the checkpoint's value cannot take effect (:func:`refuse_unused_in_eval`), and an
+  evaluation study labelled by it would print the same numbers under each label. (The metric convention
+  ``model.euler_seq`` does take effect: it follows the experiment. Training-only settings, e.g. an override
+  list shared with ``src.train``, change no evaluated number and pass.)
 * ``src.train`` trains from scratch or resumes from ``ckpt_path``: ``weights=`` is for ``src.eval``
   (:func:`refuse_unused_in_train`).
 """
@@ -19,17 +20,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.errors import ConfigError
 
-#: Keys (and key prefixes, ending in ``.``) that only training reads.
-TRAINING_ONLY: tuple[str, ...] = (
-    "trainer.max_steps", "trainer.max_epochs", "trainer.val_check_interval", "trainer.check_val_every_n_epoch",
-    "trainer.limit_train_batches", "trainer.limit_val_batches", "trainer.gradient_clip_val",
-    "trainer.accumulate_grad_batches", "callbacks.checkpoint.", "callbacks.periodic_checkpoint.",
-    "callbacks.rng_state.", "data.batch_size", "test_after_fit",
-)
-#: ``model.*`` keys ``src.eval`` takes from the config rather than from the checkpoint.
-EVAL_MODEL_KEYS: tuple[str, ...] = ("model.euler_seq",)
-
-
 def command_overrides() -> list[str]:
     """The command line's overrides of the running Hydra job (none outside one)."""
     return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
@@ -37,10 +27,6 @@ def command_overrides() -> list[str]:
 
 def _key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
-
-
-def _matches(key: str, patterns: Sequence[str]) -> bool:
-    return any(key == p or (p.endswith(".") and key.startswith(p)) for p in patterns)
 
 
 def _scaled_keys(cfg: DictConfig) -> list[str]:
@@ -54,9 +40,7 @@ def refuse_unused_in_eval(cfg: DictConfig, hparams: Mapping[str, Any], ckpt_path
     """ConfigError for the first override of ``src.eval`` that cannot take effect (module docstring)."""
     for override in command_overrides() if overrides is None else overrides:
         key = _key(override)
-        if _matches(key, TRAINING_ONLY):
-            raise ConfigError(f"{override}: a training setting, src.eval does not train: drop it")
-        if key == "model_scale" or (key.startswith("model.") and key not in EVAL_MODEL_KEYS):
+        if key == "model_scale" or key.startswith("model.network."):
             names = [f"network.{k}" for k in _scaled_keys(cfg)] if key == "model_scale" else [key.removeprefix("model.")]
             for name in names:
                 theirs = _select(hparams, name)

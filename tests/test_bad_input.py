@@ -272,9 +272,8 @@ def test_an_fp16_precision_on_the_cpu_is_refused():
                                   "{ckpt}, which has model.network.num_iters=4"),
     ("model_scale=0.5", "model_scale=0.5 cannot take effect: src.eval rebuilds the network from {ckpt}, which has "
                         "model.network.width=0.25"),
-    ("model.lr=0.1", "model.lr=0.1 cannot take effect: src.eval rebuilds the network from {ckpt}, which has "
-                     "model.lr=0.001"),
-    ("trainer.max_steps=5", "trainer.max_steps=5: a training setting, src.eval does not train: drop it"),
+    ("model.network.share_weights=true", "model.network.share_weights=true cannot take effect: src.eval rebuilds "
+                                         "the network from {ckpt}, which has model.network.share_weights=False"),
 ])
 def test_eval_refuses_overrides_the_checkpoint_overrides(override, message, tmp_path, cache):
     from src.recorded import refuse_unused_in_eval
@@ -284,8 +283,8 @@ def test_eval_refuses_overrides_the_checkpoint_overrides(override, message, tmp_
     with pytest.raises(ConfigError) as info:
         refuse_unused_in_eval(cfg, hparams, str(SHIPPED), overrides=[override])
     assert str(info.value).startswith(message.format(ckpt=SHIPPED))
-    same = _tiny(cache, tmp_path, "model.network.num_iters=4", "model_scale=0.25")  # what the checkpoint has: fine
-    refuse_unused_in_eval(same, hparams, str(SHIPPED), overrides=["model.network.num_iters=4", "model_scale=0.25"])
+    same = ["model.network.num_iters=4", "model_scale=0.25", "data.batch_size=2"]  # the checkpoint's, or no effect
+    refuse_unused_in_eval(_tiny(cache, tmp_path, *same), hparams, str(SHIPPED), overrides=same)
 
 
 def test_eval_follows_the_experiments_metric_convention(tmp_path, cache):
