@@ -50,13 +50,13 @@ set that was never prepared, a degenerate pair) stops with one ``error: ...`` li
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
 from baselines.methods import display_name  # re-exported for benchmarks.speed, until it imports baselines.methods
 from benchmarks.grid_plan import CONF_DIR, Cell, TestSet, build_test_set, plan
 from benchmarks.grid_report import report
 from benchmarks.grid_run import GridResult, run_grid
+from src.cli import hydra_command
 
 __all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "main", "plan", "report", "run_grid"]
 
@@ -66,11 +66,7 @@ def _run(cfg: DictConfig) -> None:
     report(result, cfg)
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="benchmark_grid")
-def main(cfg: DictConfig) -> None:
-    from src.errors import exit_on_user_error  # one `error: ...` line and exit 2 for a UserError
-
-    exit_on_user_error(_run)(cfg)
+main = hydra_command(_run, CONF_DIR, "benchmark_grid")  # one `error: ...` line and exit 2 for bad input
 
 
 if __name__ == "__main__":

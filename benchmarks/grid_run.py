@@ -199,6 +199,6 @@ def run_grid(cfg: DictConfig) -> GridResult:
     tidy = pd.DataFrame([row for s in summaries for row in tidy_rows(s)], columns=list(TIDY_COLUMNS))
     pairs = pd.concat([pd.read_parquet(cell.pairs_path) for cell in cells], ignore_index=True)
     write_atomic(output_dir / "results.parquet", lambda p: tidy.to_parquet(p, index=False))
-    tidy.to_csv(output_dir / "results.csv", index=False)
+    write_atomic(output_dir / "results.csv", lambda path: tidy.to_csv(path, index=False))
     write_atomic(output_dir / "pairs.parquet", lambda p: pairs.to_parquet(p, index=False))
     return GridResult(tidy, pairs, summaries, len(cells) - len(pending), len(pending), notes, output_dir)

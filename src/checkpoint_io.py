@@ -15,8 +15,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import hydra
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from omegaconf import DictConfig
 
 from src.errors import CheckpointError
 from src.files import write_atomic
@@ -44,9 +46,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return checkpoint
 
 
-def check_checkpoint(path: str | Path, expected_target: str, resume: bool = False) -> dict[str, Any]:
+def check_checkpoint(path: str | Path, expected_target: str, resume: bool = False,
+                     model: DictConfig | None = None) -> dict[str, Any]:
     """The checkpoint's hyper-parameters, after :func:`read_checkpoint` and checking it holds an
-    ``expected_target`` network (and, with ``resume``, the optimiser and loop states resuming needs)."""
+    ``expected_target`` network (and, with ``resume``, the optimiser and loop states resuming needs,
+    and the architecture of the ``model`` config: :func:`check_architecture`)."""
     checkpoint = read_checkpoint(path)
     hparams = checkpoint["hyper_parameters"]
     found = hparams["network"]["_target_"]
@@ -59,7 +63,40 @@ def check_checkpoint(path: str | Path, expected_target: str, resume: bool = Fals
             f"{path} holds weights only, no training state to resume: resume from a run's checkpoints/last.ckpt, "
             "or evaluate it with src.eval"
         )
+    if resume and model is not None:
+        check_architecture(path, checkpoint, model)
     return hparams
+
+
+def _shapes(state_dict: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+    return {key.replace("._orig_mod.", "."): tuple(value.shape) for key, value in state_dict.items()}
+
+
+def check_architecture(path: str | Path, checkpoint: dict[str, Any], model: DictConfig) -> None:
+    """CheckpointError when the ``model`` config builds parameters of other names or shapes than the
+    checkpoint holds (another width, shared weights, number of iterations): one line comparing the
+    checkpoint's network hyper-parameters with the config's. The config's module is built on the
+    ``meta`` device (no memory, no weights); a config that cannot be built there is left to training."""
+    try:
+        with torch.device("meta"):
+            module = hydra.utils.instantiate(model)
+    except Exception:  # noqa: BLE001 - the real build names the problem
+        return
+    expected, found = _shapes(module.state_dict()), _shapes(checkpoint["state_dict"])
+    if expected == found:
+        return
+    theirs, ours = checkpoint["hyper_parameters"]["network"], dict(module.hparams["network"])
+    differing = [k for k in sorted(set(theirs) | set(ours)) if k != "_target_" and theirs.get(k) != ours.get(k)]
+    if differing:
+        compared = (f"checkpoint {', '.join(f'{k}={theirs.get(k)}' for k in differing)}; "
+                    f"config {', '.join(f'{k}={ours.get(k)}' for k in differing)}")
+    else:
+        key = next(k for k in sorted(set(expected) | set(found)) if expected.get(k) != found.get(k))
+        compared = f"{key}: checkpoint {found.get(key)}, config {expected.get(key)}"
+    raise CheckpointError(
+        f"{path} holds another architecture than the config (model.network: {compared}): resume with the "
+        "checkpoint's settings, or start a new run without ckpt_path"
+    )
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -23,6 +23,7 @@ from src.errors import ConfigError
 from src.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
+from src.recorded import refuse_unused_in_eval
 from src.reporting import report_test_metrics, save_resolved_config
 from src.trainer import build_trainer
 
@@ -30,10 +31,12 @@ register_resolvers()
 log = logging.getLogger(__name__)
 
 
-def load_checkpoint(path: str, expected_target: str) -> RegistrationModule:
-    """Load a RegistrationModule checkpoint, checking it holds the configured network."""
-    check_checkpoint(path, expected_target)
-    return RegistrationModule.load_from_checkpoint(path, map_location="cpu")
+def load_checkpoint(path: str, cfg: DictConfig) -> RegistrationModule:
+    """Load a RegistrationModule checkpoint, checking it holds the configured network and that no
+    model override is lost (src/recorded.py); the metric convention is the experiment's."""
+    refuse_unused_in_eval(cfg, check_checkpoint(path, cfg.model.network._target_), path)
+    convention = {"euler_seq": cfg.model.euler_seq} if cfg.model.get("euler_seq") else {}
+    return RegistrationModule.load_from_checkpoint(path, map_location="cpu", **convention)
 
 
 def resolve_checkpoint(cfg: DictConfig) -> str:
@@ -51,7 +54,7 @@ def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
     weights = cfg.get("weights")
     if not weights:
         ckpt_path = resolve_checkpoint(cfg)
-        return load_checkpoint(ckpt_path, cfg.model.network._target_), ckpt_path
+        return load_checkpoint(ckpt_path, cfg), ckpt_path
     if cfg.ckpt_path:
         raise ConfigError("give either ckpt_path=PATH or weights=official:<name>, not both")
     from baselines.learned.published import published_module

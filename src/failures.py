@@ -15,16 +15,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from src.distributed import distributed_job_scope, global_rank
-from src.errors import ConfigError, exit_on_user_error, user_error_behind
+from src.cli import hydra_command
+from src.errors import ConfigError, Interrupted, UserError, user_error_behind
 from src.files import write_text_atomic
 from src.paths import REPO_ROOT
+from src.signals import interruptible
 from src.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -69,10 +70,12 @@ def failure_reason(err: BaseException) -> str:
 
 
 def write_failure(output_dir: Path, err: BaseException) -> Path:
-    """``failure.json`` (``failure.rank<r>.json`` on other DDP ranks): what failed, where and why."""
+    """``failure.json`` (``failure.rank<r>.json`` on other DDP ranks): what failed, where and why; an
+    interrupted run (status ``interrupted``) also records its signal, step and the checkpoint to resume from."""
     rank = global_rank()
+    interrupted = isinstance(err, Interrupted)
     record: dict[str, Any] = {
-        "status": "failed",
+        "status": "interrupted" if interrupted else "failed",
         "reason": failure_reason(err),
         "error_type": type(err).__name__,
         "message": str(err).strip(),
@@ -83,6 +86,8 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         "pid": os.getpid(),
         "rank": rank,
     }
+    if interrupted:
+        record.update(reason=str(err), signal=err.signal_name, step=err.step, resume_from=err.checkpoint)
     if HydraConfig.initialized():
         hc = HydraConfig.get()
         record["overrides"] = list(hc.overrides.task)
@@ -101,7 +106,8 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
     as a non-zero exit makes Lightning kill the sweep.
 
     Wrap it inside :func:`~src.errors.exit_on_user_error` so a re-raised UserError stays one line. A
-    job that succeeds removes a stale ``failure.json`` left in its dir by an earlier attempt.
+    job that succeeds removes a stale ``failure.json`` left in its dir by an earlier attempt. A job
+    stopped by SIGTERM/SIGINT (:mod:`src.signals`) is recorded and always re-raised: the sweep stops too.
     """
 
     @functools.wraps(task)
@@ -109,12 +115,17 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
         mode = resolve_on_failure(cfg.get("on_failure"))
         output_dir = _job_output_dir(cfg)
         try:
-            validate_config(cfg)
-            with distributed_job_scope(f"on_failure={mode}"):
-                result = task(cfg)
+            with interruptible():
+                validate_config(cfg)
+                with distributed_job_scope(f"on_failure={mode}"):
+                    result = task(cfg)
         except Exception as err:
-            path = write_failure(output_dir, err)
-            if mode == "raise":
+            try:
+                path: Path | str = write_failure(output_dir, err)
+            except UserError as problem:  # e.g. the disk that stopped the job is full: report the job's error
+                log.error("failure.json not written: %s", problem)
+                path = f"nowhere ({problem})"
+            if mode == "raise" or isinstance(err, Interrupted):
                 raise
             log.error("job failed, recorded in %s", path, exc_info=err)
             print(f"error: job failed ({failure_reason(err)}); recorded in {path}", file=sys.stderr)
@@ -128,11 +139,10 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
 
 
 def job_main(task: Callable[[DictConfig], Any]) -> Callable[[], None]:
-    """The command-line entry of a job on ``conf/config.yaml``: Hydra's main around ``task``, whose
-    failures are recorded (:func:`record_failures`) and whose UserError is one ``error:`` line and
-    exit status 2 (:func:`~src.errors.exit_on_user_error`)."""
-    entry = exit_on_user_error(record_failures(task))
-    return hydra.main(version_base="1.3", config_path=str(REPO_ROOT / "conf"), config_name="config")(entry)
+    """The command-line entry of a job on ``conf/config.yaml`` (:func:`~src.cli.hydra_command`): Hydra's
+    main around ``task``, whose failures are recorded (:func:`record_failures`) and whose UserError, like
+    an override Hydra cannot apply, is one ``error:`` line and exit status 2."""
+    return hydra_command(record_failures(task), REPO_ROOT / "conf", "config")
 
 
 def _find_job_dirs(sweep_dir: Path) -> list[Path]:

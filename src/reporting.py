@@ -11,7 +11,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from src.distributed import global_rank
-from src.files import write_text_atomic
+from src.files import write_atomic, write_text_atomic
 
 
 def save_resolved_config(cfg: DictConfig) -> None:
@@ -37,7 +37,7 @@ def write_metrics(metrics: dict[str, float], output_dir: Path, context: dict[str
     output_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(output_dir / "metrics.json", json.dumps({**context, "metrics": metrics}, indent=2))
     frame = pd.DataFrame([{**context, "metric": k, "value": v} for k, v in metrics.items()])
-    frame.to_csv(output_dir / "metrics.csv", index=False)
+    write_atomic(output_dir / "metrics.csv", lambda path: frame.to_csv(path, index=False))
 
 
 def report_test_metrics(

@@ -29,6 +29,7 @@ from src.checkpoint_io import check_checkpoint
 from src.config import register_resolvers
 from src.errors import ConfigError
 from src.failures import job_main
+from src.recorded import refuse_unused_in_train
 from src.reporting import report_test_metrics, save_resolved_config
 from src.trainer import build_trainer
 
@@ -83,8 +84,9 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
+    refuse_unused_in_train(cfg)
     if cfg.ckpt_path:
-        check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True)
+        check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
     save_resolved_config(cfg)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)

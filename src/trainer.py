@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 from src.checkpoint_io import AtomicCheckpointIO
 from src.files import remove_stale_temporaries
 from src.lightning_compat import patch_ddp_subprocess_launcher
+from src.signals import CheckpointOnSignal
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +33,7 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
         hydra.utils.instantiate(c)
         for name, c in (cfg.get("callbacks") or {}).items()
         if with_checkpoints or name not in TRAINING_ONLY_CALLBACKS
-    ]
+    ] + ([CheckpointOnSignal()] if with_checkpoints else [])  # last.ckpt on SIGTERM/SIGINT (src/signals.py)
     for callback in callbacks:
         if isinstance(callback, ModelCheckpoint) and callback.dirpath:
             for path in remove_stale_temporaries(Path(callback.dirpath)):

@@ -14,11 +14,15 @@ switches, per-model ``recipe`` blocks) and values computed at instantiation (a n
 
 from __future__ import annotations
 
+import difflib
+import inspect
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import hydra
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from src.data.datamodule import NORMALS
@@ -40,6 +44,8 @@ class Rule:
     choices: tuple[str, ...] = ()
     nullable: bool = False
     each: bool = False
+    sentinel: int | None = None
+    """A value accepted besides the bounds, e.g. ``-1`` (no limit) for ``trainer.max_steps``."""
 
     def describe(self) -> str:
         if self.choices:
@@ -54,6 +60,8 @@ class Rule:
                 text += f" {'>' if self.low_open else '>='} {self.low:g}"
         if self.each:
             text = f"a list of {text.replace('an integer', 'integers').replace('a number', 'numbers')}"
+        if self.sentinel is not None:
+            text += f" (or {self.sentinel}: no limit)"
         return text + (" (or null)" if self.nullable else "")
 
     def accepts(self, value: Any) -> bool:
@@ -64,6 +72,8 @@ class Rule:
         return self._accepts_one(value)
 
     def _accepts_one(self, value: Any) -> bool:
+        if self.sentinel is not None and value == self.sentinel and not isinstance(value, bool):
+            return True
         if self.choices:
             return isinstance(value, str) and value in self.choices
         if self.kind is bool or isinstance(value, bool):
@@ -77,8 +87,8 @@ class Rule:
         return self.high is None or (value < self.high if self.high_open else value <= self.high)
 
 
-def integer(low: int | None = None, nullable: bool = False) -> Rule:
-    return Rule(int, low, nullable=nullable)
+def integer(low: int | None = None, nullable: bool = False, sentinel: int | None = None) -> Rule:
+    return Rule(int, low, nullable=nullable, sentinel=sentinel)
 
 
 def number(low: float | None = None, high: float | None = None, low_open: bool = False, high_open: bool = False,
@@ -138,6 +148,23 @@ RULES: dict[str, Rule] = {
     "data.build.num_points": integer(MIN_POINTS),
     "data.build.seed": integer(),
     "data.build.normals": FLAG,
+    # trainer and callbacks (conf/trainer/*.yaml, conf/callbacks/default.yaml): zero or negative budgets and
+    # intervals train nothing, never validate or checkpoint, or fail deep inside Lightning
+    "trainer.max_steps": integer(1, sentinel=-1),
+    "trainer.max_epochs": integer(1, nullable=True, sentinel=-1),
+    "trainer.val_check_interval": number(0.0, low_open=True, nullable=True),
+    "trainer.check_val_every_n_epoch": integer(1, nullable=True),
+    "trainer.log_every_n_steps": integer(1),
+    "trainer.accumulate_grad_batches": integer(1),
+    "trainer.limit_train_batches": POSITIVE,
+    "trainer.limit_val_batches": NON_NEGATIVE,
+    "trainer.limit_test_batches": POSITIVE,
+    "trainer.gradient_clip_val": number(0.0, nullable=True),
+    "trainer.num_sanity_val_steps": integer(-1),
+    **{f"callbacks.periodic_checkpoint.train_time_interval.{unit}": POSITIVE for unit in ("seconds", "minutes", "hours")},
+    "callbacks.periodic_checkpoint.every_n_train_steps": integer(1, nullable=True),
+    "callbacks.checkpoint.every_n_train_steps": integer(1, nullable=True),
+    "callbacks.checkpoint.save_top_k": integer(-1),
     # model (conf/model/*.yaml, conf/recipe/*.yaml): the RegistrationModule, then network fields by name
     "model.lr": POSITIVE,
     "model.weight_decay": NON_NEGATIVE,
@@ -181,13 +208,62 @@ def _value(cfg: DictConfig, key: str) -> Any:
 
 
 def validate_config(cfg: DictConfig) -> None:
-    """Raise ConfigError for the first value of ``cfg`` that breaks its rule in :data:`RULES`."""
+    """Raise ConfigError for the first value of ``cfg`` that breaks its rule in :data:`RULES`, then for
+    the first key of an object's node (``_target_``) that its class or function does not take."""
     for key, rule in RULES.items():
         value = _value(cfg, key)
         if value is _ABSENT or (isinstance(value, dict) and "_target_" in value):
             continue
         if not rule.accepts(value):
             raise ConfigError(f"{key}={_show(value)} is invalid: it must be {rule.describe()}")
+    for path, node in _object_nodes(cfg):
+        _check_options(path, node)
+    _check_precision(cfg)
+
+
+#: Precisions Lightning silently replaces on the CPU (by bf16-mixed: there is no fp16 autocast there).
+_FP16 = ("16", "16-mixed")
+
+
+def _check_precision(cfg: DictConfig) -> None:
+    """ConfigError for an fp16 precision on the CPU, which Lightning would replace by bf16-mixed."""
+    precision, accelerator = str(_value(cfg, "trainer.precision")), _value(cfg, "trainer.accelerator")
+    on_cpu = accelerator == "cpu" or (accelerator in ("auto", _ABSENT) and not torch.cuda.is_available())
+    if precision in _FP16 and on_cpu:
+        raise ConfigError(f"trainer.precision={precision} on the CPU: Lightning would run bf16-mixed instead (no fp16 "
+                          "autocast on the CPU): use 32-true or bf16-mixed, or a GPU")
+
+
+def _object_nodes(node: Any, path: str = "") -> Iterator[tuple[str, DictConfig]]:
+    """Every node below ``node`` that builds an object (has a ``_target_``), with its dotted path."""
+    if not isinstance(node, DictConfig):
+        return
+    if "_target_" in node:
+        yield path, node
+    for key in node.keys():
+        child = node._get_node(key)
+        if isinstance(child, DictConfig) and not child._is_missing() and not child._is_interpolation():
+            yield from _object_nodes(child, f"{path}.{key}" if path else str(key))
+
+
+def _check_options(path: str, node: DictConfig) -> None:
+    """ConfigError for a key of ``node`` that its ``_target_`` does not take (e.g. ``+trainer.max_step=5``,
+    or ``+data.foo=1``, which would fail deep inside the constructor or be silently dropped)."""
+    try:
+        target = hydra.utils.get_object(str(node._get_node("_target_")._value()))
+        parameters = inspect.signature(target).parameters.values()
+    except Exception:  # noqa: BLE001 - an unknown target or a builtin: instantiation reports it
+        return
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return
+    takes = [p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL]
+    unknown = [str(k) for k in node.keys() if not str(k).startswith("_") and str(k) not in takes]
+    if unknown:
+        key = unknown[0]
+        close = difflib.get_close_matches(key, takes, n=3)
+        hint = f"did you mean {', '.join(close)}?" if close else f"it takes {', '.join(takes)}"
+        where = f"{path}.{key}" if path else key
+        raise ConfigError(f"{where} is not an option of {node._get_node('_target_')._value()}: {hint}")
 
 
 def _show(value: Any) -> str:

@@ -1,6 +1,7 @@
 """Helpers shared by the tests: small batches and checks for the network tests; configs of the
 entry points on tiny synthetic data; runs killed and resumed."""
 
+import time
 from pathlib import Path
 
 import lightning as L
@@ -185,6 +186,25 @@ class KillAt(L.Callback):
     def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
         if trainer.global_step == self.step:
             raise RuntimeError(f"killed at step {self.step}")
+
+
+class PauseAt(L.Callback):
+    """At the start of training step ``step``: touch ``ready`` and wait (at most a minute) until the
+    run's :class:`~src.signals.CheckpointOnSignal` has received a signal sent from outside."""
+
+    def __init__(self, step: int, ready: str) -> None:
+        self.step, self.ready = step, Path(ready)
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
+        from src.signals import CheckpointOnSignal
+
+        if trainer.global_step != self.step:
+            return
+        watcher = next(c for c in trainer.callbacks if isinstance(c, CheckpointOnSignal))
+        self.ready.touch()
+        deadline = time.monotonic() + 60
+        while watcher.received is None and time.monotonic() < deadline:
+            time.sleep(0.05)
 
 
 def last_weights(run_dir: Path) -> dict[str, torch.Tensor]:

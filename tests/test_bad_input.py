@@ -4,6 +4,7 @@ that would train nothing, checkpoints to resume from, and checkpoint files of ki
 from __future__ import annotations
 
 import glob
+import importlib
 import os
 import signal
 import subprocess
@@ -68,12 +69,65 @@ def test_invalid_values_are_refused_at_composition(override, message):
     assert str(info.value) == message
 
 
-def test_every_shipped_config_is_valid_and_unknown_keys_pass():
-    models = sorted(Path(p).stem for p in glob.glob(f"{CONF}/model/*.yaml"))
-    experiments = sorted(Path(p).stem for p in glob.glob(f"{CONF}/exp/*.yaml"))
-    for overrides in [[f"model={m}", "+exp=scan_pairs"] for m in models] + [[f"+exp={e}"] for e in experiments]:
+def _stems(group: str) -> list[str]:
+    return sorted(Path(p).stem for p in glob.glob(f"{CONF}/{group}/*.yaml"))
+
+
+def test_every_shipped_config_is_valid_and_keys_outside_objects_pass():
+    choices = [[f"model={m}", "+exp=scan_pairs"] for m in _stems("model")] + [[f"+exp={e}"] for e in _stems("exp")]
+    choices += [[f"{group}={name}"] for group in ("recipe", "trainer", "logger") for name in _stems(group)]
+    for overrides in choices:
         validate_config(compose_config(*overrides))
-    validate_config(compose_config("+data.a_new_switch=abc", "+model.recipe_note=-1", "partial=rpmnet", "sampling=os"))
+    validate_config(compose_config("partial=rpmnet", "sampling=os"))
+
+
+@pytest.mark.parametrize("override, message", [  # zero or negative budgets and intervals: tracebacks or nothing trained
+    ("trainer.max_steps=0", "trainer.max_steps=0 is invalid: it must be an integer >= 1 (or -1: no limit)"),
+    ("trainer.max_steps=-5", "trainer.max_steps=-5 is invalid: it must be an integer >= 1 (or -1: no limit)"),
+    ("trainer.log_every_n_steps=0", "trainer.log_every_n_steps=0 is invalid: it must be an integer >= 1"),
+    ("trainer.val_check_interval=0", "trainer.val_check_interval=0 is invalid: it must be a number > 0 (or null)"),
+    ("callbacks.periodic_checkpoint.train_time_interval.minutes=-1",
+     "callbacks.periodic_checkpoint.train_time_interval.minutes=-1 is invalid: it must be a number > 0"),
+    ("+callbacks.periodic_checkpoint.every_n_train_steps=0",
+     "callbacks.periodic_checkpoint.every_n_train_steps=0 is invalid: it must be an integer >= 1 (or null)"),
+    # unknown keys added with + under a node that builds an object: a TypeError deep in its constructor
+    ("+trainer.max_step=5", "trainer.max_step is not an option of lightning.Trainer: did you mean max_steps, max_time, "
+                            "min_steps?"),
+    ("+model.network.widht=0.5", "model.network.widht is not an option of src.models.omnet.OMNet: did you mean width?"),
+    ("+callbacks.checkpoint.monitr=x",
+     "callbacks.checkpoint.monitr is not an option of lightning.pytorch.callbacks.ModelCheckpoint: did you mean monitor?"),
+    ("+data.a_new_switch=abc", "data.a_new_switch is not an option of src.data.datamodule.RegistrationDataModule: it "
+                               "takes dataset, cache_root, splits, remove_axisymmetric, pair, batch_size, eval_batch_size, "
+                               "num_workers, pin_memory, persistent_workers, seed, build, normals"),
+])
+def test_intervals_budgets_and_unknown_object_options_are_refused(override, message):
+    with pytest.raises(ConfigError) as info:
+        validate_config(compose_config(override))
+    assert str(info.value) == message
+
+
+@pytest.mark.parametrize("module, argv, message", [  # Hydra's multi-line report and exit status 1 before
+    ("src.train", ["data.splits.test.slice=[-100,", "null]"],
+     "error: an override does not parse (no viable alternative at input '[-100,'); quote values with brackets, "
+     "commas or spaces, e.g. 'data.splits.test.slice=[-100, null]'"),
+    ("src.eval", ["data=modelnet41"], "error: data=modelnet41: no such config in group data; choose one of: base, "
+                                      "modelnet40, modelnet40_resampled, scan_pairs, stanford, synthetic"),
+    ("src.train", ["modle=dcp"], "error: modle is not a config key or group: did you mean model, model_scale? add a new "
+                                 "key with +modle=VALUE"),
+    ("src.train", ["trainer.max_step=5"], "error: trainer.max_step is not a key of trainer: did you mean "
+                                          "trainer.max_steps, trainer.max_epochs? add a new key with +trainer.max_step=VALUE"),
+    ("benchmarks.grid", ["+benchmark=nosuch"], "error: benchmark=nosuch: no such config in group benchmark; choose one "
+                                               "of: default, demo, published_weights, real_airplane, real_categories, "
+                                               "scan_pairs, stanford"),
+])
+def test_hydra_override_errors_are_one_line_exit_2(module, argv, message, monkeypatch, capsys):
+    main = importlib.import_module(module).main
+    monkeypatch.setattr(sys, "argv", [module, *argv])
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "0")  # (restored after the test)
+    with pytest.raises(SystemExit) as info:
+        main()
+    assert info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [message]
 
 
 @pytest.mark.parametrize("entry, override, message", [
@@ -200,3 +254,45 @@ def test_write_atomic_removes_its_temporary_on_failure_and_live_temporaries_stay
     mine = tmp_path / f".last.ckpt.{os.getpid()}.tmp"  # a save in progress in a running process
     mine.write_text("x")
     assert remove_stale_temporaries(tmp_path) == [] and mine.exists()
+
+
+# --- what is recorded is what ran (issue 22) ----------------------------------------------------------
+
+
+def test_an_fp16_precision_on_the_cpu_is_refused():
+    """Lightning ran bf16-mixed instead, and config_resolved.yaml recorded 16-mixed."""
+    with pytest.raises(ConfigError, match=r"^trainer.precision=16-mixed on the CPU: Lightning would run bf16-mixed"):
+        validate_config(compose_config("trainer.accelerator=cpu", "trainer.precision=16-mixed"))
+    validate_config(compose_config("trainer.accelerator=cpu", "trainer.precision=bf16-mixed"))
+
+
+@pytest.mark.parametrize("override, message", [
+    # an evaluation-time study printed identical numbers under different labels
+    ("model.network.num_iters=2", "model.network.num_iters=2 cannot take effect: src.eval rebuilds the network from "
+                                  "{ckpt}, which has model.network.num_iters=4"),
+    ("model_scale=0.5", "model_scale=0.5 cannot take effect: src.eval rebuilds the network from {ckpt}, which has "
+                        "model.network.width=0.25"),
+    ("model.network.share_weights=true", "model.network.share_weights=true cannot take effect: src.eval rebuilds "
+                                         "the network from {ckpt}, which has model.network.share_weights=False"),
+])
+def test_eval_refuses_overrides_the_checkpoint_overrides(override, message, tmp_path, cache):
+    from src.recorded import refuse_unused_in_eval
+
+    cfg = _tiny(cache, tmp_path, override, f"ckpt_path={SHIPPED}")
+    hparams = torch.load(SHIPPED, map_location="cpu", weights_only=False, mmap=True)["hyper_parameters"]
+    with pytest.raises(ConfigError) as info:
+        refuse_unused_in_eval(cfg, hparams, str(SHIPPED), overrides=[override])
+    assert str(info.value).startswith(message.format(ckpt=SHIPPED))
+    same = ["model.network.num_iters=4", "model_scale=0.25", "data.batch_size=2"]  # the checkpoint's, or no effect
+    refuse_unused_in_eval(_tiny(cache, tmp_path, *same), hparams, str(SHIPPED), overrides=same)
+
+
+def test_eval_follows_the_experiments_metric_convention(tmp_path, cache):
+    """The checkpoint's (PRNet manner: zyx) was used whatever partial=rpmnet asked for."""
+    module = src.eval.load_checkpoint(str(SHIPPED), _tiny(cache, tmp_path, "partial=rpmnet"))
+    assert module.hparams["euler_seq"] == "xyz" and module.test_metrics.euler_seq == "xyz"
+
+
+def test_train_refuses_weights(tmp_path, cache):
+    with pytest.raises(ConfigError, match=r"^weights=official:dcp_v1: src.train does not load weights"):
+        train(_tiny(cache, tmp_path, "weights=official:dcp_v1"))

@@ -6,6 +6,7 @@ import pickle
 
 import numpy as np
 import pytest
+import torch
 
 from baselines import (
     Registrator,
@@ -90,7 +91,7 @@ def test_register_registrator_supports_lazy_adapters():
         (np.zeros(5), r"expected an \(N, 3\) array"),
         ([[0, 0, 0], [1, 0, 0], [0, float("nan"), 0]], "NaN or infinite"),
         ([[0, 0, 0], [1, 0, 0], [0, float("inf"), 0]], "NaN or infinite"),
-        ([["a", "b", "c"]] * 3, "cannot be read"),
+        ([["a", "b", "c"]] * 3, "expected real numbers"),
         (np.ones((3, 3)), "degenerate cloud, its 3 points are all the same point"),
         ([[0, 0, 0], [1, 1, 1]] * 50, r"degenerate cloud, its 100 points are all on one line \(2 distinct\)"),
         (np.outer(np.linspace(-1, 1, 40), [1, 2, 3]) + 5, r"all on one line \(40 distinct\)"),
@@ -252,3 +253,27 @@ def test_register_result_records_failures_and_raises_on_bad_input():
     assert slow.failed and slow.timed_out and slow.reason.startswith("timed out: took")
     with pytest.raises(PointCloudError, match="src: needs at least 3 points"):
         ToyRegistrator().register_result(src[:2], ref)
+
+
+@pytest.mark.parametrize("points, kind", [  # converted silently before: True -> 1.0, 1+2j -> 1.0, "0.5" -> 0.5
+    (np.ones((10, 3), dtype=bool), "bool"),
+    (np.ones((10, 3), dtype=complex), "complex128"),
+    (np.array([[1, 2, 3]] * 4 + [[1, "a", 2]], dtype=object), "object"),
+    ([["0.1", "0.2", "0.3"]] * 5, "<U3"),
+])
+def test_register_accepts_real_numbers_only(points, kind):
+    ref = np.random.default_rng(0).normal(size=(10, 3))
+    with pytest.raises(PointCloudError, match=rf"^src: expected real numbers \(integers or floats\), got a {kind} array"):
+        get_registrator("icp").register(points, ref)
+
+
+def test_a_line_stored_in_float32_is_still_degenerate():
+    """float32 rounding put the line's second singular value at ~1e-8 of the first, over float64's 1e-9 limit."""
+    t = np.linspace(-1, 1, 50)[:, None]
+    line = (t * np.array([[0.3, 0.7, 0.11]]) + np.array([[0.1, 0.2, 0.3]])).astype(np.float32)
+    assert np.linalg.svd(line.astype(np.float64) - line.mean(0), compute_uv=False)[1] > 1e-9 * 1.0  # what passed
+    ref = np.random.default_rng(0).normal(size=(50, 3))
+    for cloud in (line, torch.from_numpy(line)):
+        with pytest.raises(PointCloudError, match="^src: degenerate cloud, its 50 points are all on one line"):
+            get_registrator("icp").register(cloud, ref)
+    get_registrator("icp").register(line.astype(np.float64) + np.random.default_rng(1).normal(size=(50, 3)) * 1e-3, ref)

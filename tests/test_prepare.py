@@ -304,3 +304,66 @@ def test_a_format_1_cache_is_rebuilt_at_use_from_its_recorded_source(resampled_c
     cache = ensure_cache("modelnet40_resampled", tmp_path / "cache")
     assert "has format_version 1, expected 2: rebuilding it from " in info_logs.text
     assert cache.manifest["format_version"] == 2 and np.array_equal(_points(cache), resampled_cache[1])
+
+
+# --- shape identities across splits and files (issue 22): a leak or a different dataset than the lists say --
+
+
+def _append(path: Path, line: str) -> None:
+    path.write_text(path.read_text() + line + "\n")
+
+
+@pytest.mark.parametrize("edit, message", [
+    # trained with a train/test leak: the index-based guard compares within one split only
+    (lambda root: _append(root / "modelnet40_test.txt", "airplane_0001"),
+     "1 shapes are listed in both modelnet40_train.txt of {root} and modelnet40_test.txt of {root} "
+     "(first: airplane_0001): a shape in two splits leaks the test set into training; list each shape in one split"),
+    (lambda root: _append(root / "modelnet40_train.txt", "chair_0001"),
+     "modelnet40_train.txt of {root} lists 1 shape ids more than once (first: chair_0001): list each shape once"),
+    (lambda root: (root / "airplanes").mkdir() or (root / "airplanes" / "airplanes_0001.txt").write_text("0,0,0,0,0,1\n"),
+     "{root}: the folders airplanes hold shapes of categories that modelnet40_shape_names.txt does not name: add them "
+     "to it, or remove the folders"),
+    (lambda root: _append(root / "modelnet40_train.txt", "aeroplane_0001"),
+     "{root}: modelnet40_train.txt lists shapes of categories that modelnet40_shape_names.txt does not name "
+     "(aeroplane): a list of another dataset?"),
+])
+def test_shape_identities_are_checked_across_splits_and_files(resampled_dir, tmp_path, edit, message):
+    edit(resampled_dir)
+    with pytest.raises(DatasetError) as error:
+        prepare("modelnet40_resampled", source=resampled_dir, cache_root=tmp_path)
+    assert str(error.value) == message.format(root=resampled_dir)
+    assert not (tmp_path / "modelnet40_resampled").exists()
+
+
+def test_merged_sources_sharing_a_shape_across_splits_are_refused(resampled_dir, tmp_path):
+    other = tmp_path / "other" / "modelnet40_normal_resampled"
+    (other / "chair").mkdir(parents=True)
+    (other / "chair" / "chair_0001.txt").write_text((resampled_dir / "chair" / "chair_0001.txt").read_text())
+    (other / "modelnet40_shape_names.txt").write_text((resampled_dir / "modelnet40_shape_names.txt").read_text())
+    (other / "modelnet40_test.txt").write_text("chair_0001\n")  # a training chair of the first source
+    (resampled_dir / "modelnet40_test.txt").write_text("airplane_0003\n")
+    with pytest.raises(DatasetError, match=r"^1 shapes are listed in both .*modelnet40_train.txt .* and .*other.*"
+                                           r"modelnet40_test.txt .*\(first: chair_0001\)"):
+        prepare("modelnet40_resampled", source=[resampled_dir, other], cache_root=tmp_path / "cache")
+
+
+def test_training_refuses_a_cache_whose_splits_share_a_shape_id(tmp_path):
+    """A cache written before these checks (or by hand): the same id in its train and test splits."""
+    from src.data.cache import CacheSplit, write_cache
+    from src.data.datamodule import RegistrationDataModule
+    from src.errors import ConfigError
+
+    points = np.random.default_rng(0).normal(size=(2, 1, 64, 3)).astype(np.float32)
+    fields = {"dataset": "modelnet40_resampled", "source_layout": "pointnet2_resampled",
+              "pair_sampling": "disjoint_subsets", "categories": ["airplane"], "halves": {"1": ["airplane"], "2": []},
+              "sampling": {"num_samplings": 1}, "source": {"paths": [], "fingerprints": []}}
+    write_cache(tmp_path / "modelnet40_resampled", fields, {
+        "train": CacheSplit("train", points, None, np.zeros(2, np.int64), ["airplane_0001", "airplane_0002"]),
+        "test": CacheSplit("test", points[:1], None, np.zeros(1, np.int64), ["airplane_0002"]),
+    })
+    splits = {"train": {"split": "train", "categories": "all"}, "test": {"split": "test", "categories": "all"}}
+    datamodule = RegistrationDataModule("modelnet40_resampled", str(tmp_path), splits, remove_axisymmetric=False,
+                                        pair={"num_points": 32}, batch_size=1, num_workers=0)
+    with pytest.raises(ConfigError, match=r"^1 shapes of the test set are also training shapes \(cache splits 'train' "
+                                          r"and 'test' list the same shape ids\) \(first: airplane_0002\)"):
+        datamodule.setup("fit")

@@ -102,6 +102,19 @@ def test_the_shared_file_must_be_the_published_one(tmp_path, monkeypatch):
     torch.save({"emb_nn.conv1.weight": torch.zeros(1)}, tmp_path / "weights" / "dcp_v1.t7")
     with pytest.raises(CheckpointError, match="has sha256 .* not the published file's 797d34fa5ef9"):
         resolve("official:dcp_v1")
+    # the same file given by its path (issue 22: loaded as the published weights, its sha256 never checked)
+    with pytest.raises(CheckpointError, match="has sha256 .* not the published file's 797d34fa5ef9"):
+        resolve(str(tmp_path / "weights" / "dcp_v1.t7"))
+
+
+def test_a_path_of_another_name_is_loaded_but_marked_unverified(tmp_path):
+    published = shared_path("weights", PUBLISHED["dcp_v1"].file)
+    if not published.is_file():
+        pytest.skip("the shared DCP weights are not here")
+    copy = tmp_path / "my_dcp.t7"
+    copy.write_bytes(published.read_bytes())
+    assert resolve(str(published)).verified and not resolve(str(copy)).verified
+    assert published_module(str(copy)).hparams["weights"] == {"spec": str(copy), "file": str(copy), "verified": False}
 
 
 def test_registry_entries_are_complete():

@@ -3,8 +3,9 @@
 :data:`PUBLISHED` names every known file (``official:<name>``): where it lies (``../shared/weights/``,
 :func:`src.paths.shared_path`), its sha256, the network it fits (a ``conf/model`` config plus
 overrides), the protocol it was trained under (``conf/exp/<protocol>.yaml``), what its authors report
-and its license. ``weights=`` accepts such a name or the path of a file of a known layout (then the
-layout's registry entry gives the network; no sha256 is checked).
+and its license. ``weights=`` accepts such a name or the path of a file of a known layout: a file named as a registered one is
+checked against its sha256; another one gets the layout's registry entry's network and is recorded as
+unverified (``module.hparams["weights"]["verified"]``).
 
 One converter per source layout maps the published state dict onto our network strictly: every
 source tensor is used (BatchNorm statistics included), none is missing, and the result must fill the
@@ -262,12 +263,13 @@ def weights_sha256(spec: str) -> str:
 
 @dataclass(frozen=True)
 class Resolved:
-    """A ``weights`` spec resolved: its registry entry (the layout's for a plain path), the file and
-    the converted state dict."""
+    """A ``weights`` spec resolved: its registry entry (the layout's for a plain path), the file, the
+    converted state dict and whether the file is a registered one (its sha256 checked)."""
 
     entry: Published
     path: Path
     state: dict[str, Tensor]
+    verified: bool = True
 
 
 def registry_entry(name: str) -> Published:
@@ -277,8 +279,17 @@ def registry_entry(name: str) -> Published:
     return PUBLISHED[name]
 
 
+def _check_sha256(spec: str, path: Path, entry: Published) -> None:
+    digest = file_sha256(path)
+    if digest != entry.sha256:
+        raise CheckpointError(
+            f"{spec}: {path} has sha256 {digest[:12]}…, not the published file's {entry.sha256[:12]}…"
+        )
+
+
 def resolve(spec: str) -> Resolved:
-    """``official:<name>`` (the shared file, sha256 checked) or a path to a file of a known layout."""
+    """``official:<name>`` (the shared file), or a path: one named as a registered file is checked
+    against its sha256 as well; any other file of a known layout is loaded, marked unverified."""
     spec = str(spec)
     if spec.startswith(OFFICIAL):
         entry = registry_entry(spec[len(OFFICIAL):])
@@ -288,18 +299,16 @@ def resolve(spec: str) -> Resolved:
                 f"{spec}: {path} does not exist (the shared folder is $OMNET_SHARED_DIR or ../shared beside the "
                 f"repository; or pass the file's path instead of the name)"
             )
-        digest = file_sha256(path)
-        if digest != entry.sha256:
-            raise CheckpointError(
-                f"{spec}: {path} has sha256 {digest[:12]}…, not the published file's {entry.sha256[:12]}…"
-            )
-        state, layout = read_state_dict(path), entry.layout
+        registered: Published | None = entry
     else:
         path = Path(spec).expanduser()
-        state = read_state_dict(path)
-        layout = detect_layout(state, path)
-        entry = next(p for p in PUBLISHED.values() if p.layout == layout)
-    return Resolved(entry, path, convert(state, layout))
+        registered = next((p for p in PUBLISHED.values() if p.file == path.name), None)
+    if registered is not None:
+        _check_sha256(spec, path, registered)
+    state = read_state_dict(path)
+    layout = registered.layout if registered is not None else detect_layout(state, path)
+    entry = registered or next(p for p in PUBLISHED.values() if p.layout == layout)
+    return Resolved(entry, path, convert(state, layout), verified=registered is not None)
 
 
 def network_config(entry: Published) -> dict[str, Any]:
@@ -350,6 +359,7 @@ def published_module(spec: str, model_cfg: Mapping[str, Any] | None = None, expe
     plain = OmegaConf.to_container(model_cfg, resolve=True) if not isinstance(model_cfg, dict) else dict(model_cfg)
     module = hydra.utils.instantiate({**plain, "network": network})
     load_weights(module.network, resolved.state, spec)
+    module.hparams["weights"] = {"spec": spec, "file": str(resolved.path), "verified": resolved.verified}
     return module.eval()
 
 

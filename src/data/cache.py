@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from src.errors import DatasetError
+from src.files import disk_error, disk_errors, preallocate
 
 FORMAT_VERSION = 2
 """2: ``content_hash`` covers the whole manifest; ``source`` holds ``paths`` and ``fingerprints``."""
@@ -219,7 +220,9 @@ class CacheWriter:
     """Streams splits into a temporary sibling folder; :meth:`commit` renames it into place.
 
     ``manifest_fields`` holds :data:`REQUIRED_FIELDS` and optionally ``missing_splits``.
-    Use as a context manager: an exception discards the temporary folder.
+    Use as a context manager: an exception discards the temporary folder (a full disk or a folder
+    without write permission then raises one :class:`~src.errors.DiskError` line). The memory-mapped
+    arrays are preallocated, so a full disk fails when a split is added, never by ``SIGBUS`` mid-write.
     """
 
     def __init__(self, out_dir: Path, manifest_fields: Mapping):
@@ -227,8 +230,9 @@ class CacheWriter:
         if absent:
             raise ValueError(f"manifest_fields lacks {absent}")
         self.out_dir = Path(out_dir)
-        self.out_dir.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp_dir = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.tmp-", dir=self.out_dir.parent))
+        with disk_errors(self._what, self.out_dir.parent):
+            self.out_dir.parent.mkdir(parents=True, exist_ok=True)
+            self.tmp_dir = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.tmp-", dir=self.out_dir.parent))
         self.tmp_dir.chmod(0o755)  # mkdtemp makes it private
         self.fields = dict(manifest_fields)
         self._splits: dict[str, dict] = {}
@@ -244,9 +248,11 @@ class CacheWriter:
             raise ValueError(f"split {name}: shape {shape}, {labels.shape} labels, {len(shape_names)} names disagree")
         np.save(self.tmp_dir / f"{name}_labels.npy", labels)
         keys = ("points", "normals") if normals else ("points",)
-        self._arrays[name] = {
-            key: np.lib.format.open_memmap(self.tmp_dir / f"{name}_{key}.npy", "w+", np.float32, shape) for key in keys
-        }
+        self._arrays[name] = {}
+        for key in keys:
+            path = self.tmp_dir / f"{name}_{key}.npy"
+            self._arrays[name][key] = np.lib.format.open_memmap(path, "w+", np.float32, shape)
+            preallocate(path)
         self._splits[name] = {"count": shape[0], "shape": list(shape), "shape_names": list(shape_names)}
         return self._arrays[name]["points"], self._arrays[name].get("normals")
 
@@ -289,9 +295,17 @@ class CacheWriter:
     def __enter__(self) -> CacheWriter:
         return self
 
+    @property
+    def _what(self) -> str:
+        return f"writing the cache {self.out_dir.name}"
+
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
-            self.abort()
+        if exc_type is None:
+            return
+        problem = disk_error(exc, self._what, self.out_dir.parent) if isinstance(exc, Exception) else None
+        self.abort()
+        if problem is not None:
+            raise problem from exc
 
 
 def write_cache(out_dir: Path, manifest_fields: Mapping, splits: Mapping[str, CacheSplit]) -> Cache:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardS
 from src.data.prepare import ensure_cache
 from src.data.transforms import build_pair_transforms
 from src.errors import ConfigError, DatasetError
+from src.signals import loader_worker_init
 
 STAGES = ("train", "val", "test")
 NORMALS = ("none", "cache")
@@ -135,19 +137,23 @@ class RegistrationDataModule(L.LightningDataModule):
 
     def _refuse_leaks(self) -> None:
         """ConfigError if a training shape is also a validation or test shape (e.g. one category for
-        both sides of ``+exp=real_unseen_category``, or a carve-out that overlaps the training slice)."""
+        both sides of ``+exp=real_unseen_category``, a carve-out that overlaps the training slice, or
+        one shape id in two splits of a cache: shapes are compared by their ids across splits)."""
         if "train" not in self.splits:
             return
         split, train = select_shapes(self.cache, self.splits["train"], self.remove_axisymmetric, self.splits)
+        train_names = set(np.asarray(self.cache.split(split).shape_names)[train])
         for name in ("val", "test"):
             spec = self.splits.get(name)
-            if spec is None or spec["split"] != split:
+            if spec is None:
                 continue
-            shared = np.intersect1d(train, select_shapes(self.cache, spec, self.remove_axisymmetric, self.splits)[1])
-            if shared.size:
-                names = self.cache.split(split).shape_names
+            other, indices = select_shapes(self.cache, spec, self.remove_axisymmetric, self.splits)
+            names = np.asarray(self.cache.split(other).shape_names)[np.unique(indices)]
+            shared = [n for n in names if n in train_names]
+            if shared:
+                where = "" if other == split else f" (cache splits {split!r} and {other!r} list the same shape ids)"
                 raise ConfigError(
-                    f"{shared.size} shapes of the {name} set are also training shapes (first: {names[shared[0]]}): "
+                    f"{len(shared)} shapes of the {name} set are also training shapes{where} (first: {shared[0]}): "
                     f"make data.splits.train and data.splits.{name} disjoint (slice, exclude or other categories)"
                 )
 
@@ -165,8 +171,10 @@ class RegistrationDataModule(L.LightningDataModule):
         return data.normals
 
     def _loader_options(self) -> dict[str, Any]:
+        rank = self.trainer.global_rank if self.trainer is not None else 0
         return {"num_workers": self.num_workers, "pin_memory": self.pin_memory,
-                "persistent_workers": self.persistent_workers}
+                "persistent_workers": self.persistent_workers,
+                "worker_init_fn": functools.partial(loader_worker_init, rank=rank)}
 
     def train_dataloader(self) -> DataLoader:
         self._require("train")

@@ -43,9 +43,12 @@ from src.data.cache import (
 from src.data.categories import half_categories
 from src.data.download import download as download_file
 from src.data.mesh import MeshShape
-from src.data.readers import READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, layout_of
+from src.data.readers import (
+    READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, check_split_identities, layout_of,
+)
 from src.data.sampling import METHOD, NORMALIZATION, sample_shape
 from src.errors import DatasetError, exit_code_of
+from src.files import disk_errors
 
 log = logging.getLogger(__name__)
 
@@ -143,21 +146,34 @@ def _log_summary(cache: Cache) -> None:
 @contextmanager
 def _build_lock(out: Path) -> Iterator[None]:
     """Serialise check-and-build of one cache across processes (e.g. DDP ranks building synthetic)."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out.parent / f".{out.name}.lock", "w") as lock:
+    with disk_errors(f"locking the cache {out.name} to build it", out.parent):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        lock = open(out.parent / f".{out.name}.lock", "w")
+    with lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         yield
 
 
-def _reuse(out: Path, expected: dict, force: bool) -> Cache | None:
-    """The existing cache when valid for ``expected`` (hashes verified) and not ``force``d."""
+def _reuse_or_build(out: Path, expected: dict, force: bool, build: Callable[[], Cache]) -> Cache:
+    """The cache at ``out`` when valid for ``expected``, checked without the lock first (a valid cache
+    on a read-only mount is read with no write access), else ``build()`` under :func:`_build_lock`."""
+    cache = _reuse(out, expected, force, say_why=False)
+    if cache is not None:
+        return cache
+    with _build_lock(out):
+        return _reuse(out, expected, force) or build()
+
+
+def _reuse(out: Path, expected: dict, force: bool, say_why: bool = True) -> Cache | None:
+    """The existing cache when valid for ``expected`` (hashes verified) and not ``force``d (``say_why``:
+    log why an existing one is not)."""
     if force:
         return None
     problem = check_cache(out, expected)
     if problem is None:
         log.info(f"cache up to date: {out} (hashes verified)")
         return open_cache(out)
-    if out.exists():
+    if out.exists() and say_why:
         log.info(f"rebuilding: {problem}")
     return None
 
@@ -259,8 +275,8 @@ def prepare_modelnet(
         "dataset": dataset, "source_layout": layout, "sampling": sampling,
         "source": {"fingerprints": [s.fingerprint for s in opened]},
     }
-    with _build_lock(out):
-        return _reuse(out, expected, force) or _build_modelnet(out, dataset, opened, layout, sampling, workers, limit)
+    return _reuse_or_build(out, expected, force,
+                           lambda: _build_modelnet(out, dataset, opened, layout, sampling, workers, limit))
 
 
 def _build_modelnet(
@@ -272,6 +288,7 @@ def _build_modelnet(
         log.warning(missing.message)
     if not reader.entries:
         raise DatasetError(f"{reader.where}: no split can be built")
+    check_split_identities(reader.entries, {split: reader.split_list(split) for split in reader.entries})
     if layout in ("princeton_off", "scan_meshes"):
         compute, pair_sampling = _sample_mesh, _pair_sampling(sampling["num_samplings"])
     else:
@@ -336,8 +353,7 @@ def build_synthetic_cache(
         "dataset": "synthetic", "categories": categories, "sampling": sampling,
         "source": {"fingerprints": [fingerprint]},
     }
-    with _build_lock(out):
-        return _reuse(out, expected, force) or _build_synthetic(out, synthetic, sampling, fingerprint)
+    return _reuse_or_build(out, expected, force, lambda: _build_synthetic(out, synthetic, sampling, fingerprint))
 
 
 def _build_synthetic(out: Path, synthetic: ModuleType, sampling: dict, fingerprint: dict) -> Cache:

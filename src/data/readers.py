@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections import Counter
 import os
 import re
 import zipfile
@@ -98,6 +99,25 @@ class MissingSplit:
 
 def _shown(ids: list[str], limit: int = 5) -> str:
     return ", ".join(ids[:limit]) + (", ..." if len(ids) > limit else "")
+
+
+def check_split_identities(entries: dict[str, list[ShapeEntry]], lists: dict[str, str]) -> None:
+    """DatasetError when a shape id is listed twice in one split, or in two splits (a train/test leak
+    the index-based guard of the datamodule cannot see); ``lists`` names each split's list or folder."""
+    seen: dict[str, str] = {}
+    for split, split_entries in entries.items():
+        counts = Counter(entry.name for entry in split_entries)
+        twice = [name for name, count in counts.items() if count > 1]
+        if twice:
+            raise DatasetError(f"{lists[split]} lists {len(twice)} shape ids more than once (first: {_shown(twice)}): "
+                               "list each shape once")
+        both = [name for name in counts if name in seen]
+        if both:
+            raise DatasetError(
+                f"{len(both)} shapes are listed in both {lists[seen[both[0]]]} and {lists[split]} (first: {_shown(both)}): "
+                "a shape in two splits leaks the test set into training; list each shape in one split"
+            )
+        seen.update((name, split) for name in counts)
 
 
 class Archive:
@@ -189,6 +209,10 @@ class Reader:
     def where(self) -> str:
         """The source(s) read, for messages."""
         return str(self.archive.path)
+
+    def split_list(self, split: str) -> str:
+        """Where ``split`` is listed, for messages."""
+        return f"the {split} split of {self.where}"
 
     def _set_splits(self, entries: dict[str, list[ShapeEntry]]) -> None:
         """Keep non-empty splits; an empty split is reported as missing, never dropped silently."""
@@ -417,8 +441,14 @@ class ResampledReader(Reader):
         super().__init__(archive)
         names_file = min((f for f in archive.files if PurePosixPath(f).name == self.NAMES_FILE), key=len)
         root = _parent(names_file)
-        folders = {_parent(f).removeprefix(f"{root}/" if root else "") for f in archive.files}
-        self.categories = [c for c in _lines(archive.read(names_file)) if c in folders]
+        self.root = root
+        named = _lines(archive.read(names_file))
+        folders = {_parent(f).removeprefix(f"{root}/" if root else "") for f in archive.files if f.endswith(".txt")}
+        unknown = sorted(f for f in folders - set(named) if f and f != root and "/" not in f)
+        if unknown:
+            raise DatasetError(f"{archive.path}: the folders {', '.join(unknown)} hold shapes of categories that {names_file} "
+                               "does not name: add them to it, or remove the folders")
+        self.categories = [c for c in named if c in folders]
         if not self.categories:
             raise DatasetError(f"{archive.path}: none of the categories of {names_file} has a folder")
         entries: dict[str, list[ShapeEntry]] = {}
@@ -427,6 +457,10 @@ class ResampledReader(Reader):
             if list_file not in archive.file_set:
                 continue
             listed = [(shape_id, self._category(shape_id, list_file)) for shape_id in _lines(archive.read(list_file))]
+            strays = sorted({category for _, category in listed} - set(named))
+            if strays:
+                raise DatasetError(f"{archive.path}: {list_file} lists shapes of categories that {names_file} does not "
+                                   f"name ({', '.join(strays)}): a list of another dataset?")
             entries[split] = [
                 ShapeEntry(shape_id, category, split, _join(root, category, f"{shape_id}.txt"))
                 for shape_id, category in listed
@@ -437,6 +471,9 @@ class ResampledReader(Reader):
                 self.missing[split] = MissingSplit.of_files(split, len(entries[split]), gaps, [self.where])
                 del entries[split]
         self._set_splits(entries)
+
+    def split_list(self, split: str) -> str:
+        return f"{_join(self.root, f'modelnet40_{split}.txt')} of {self.where}"
 
     def _gaps(self, entries: list[ShapeEntry]) -> dict[str, dict]:
         """Per category with absent files: ``{"missing", "listed", "examples"}``."""
@@ -534,6 +571,9 @@ class MergedReader(Reader):
     @property
     def where(self) -> str:
         return ", ".join(r.where for r in self.readers)
+
+    def split_list(self, split: str) -> str:
+        return " and ".join(r.split_list(split) for r in self.readers if split in r.entries)
 
     def _merged_entries(self, split: str) -> list[ShapeEntry]:
         entries = [replace(e, source=i) for i, r in enumerate(self.readers) for e in r.entries.get(split, [])]
