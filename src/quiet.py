@@ -1,0 +1,27 @@
+"""Quiet output: what Lightning prints that a run does not need, silenced in one place.
+
+Lightning's informational lines (advertising tips, "GPU available", "Seed set", a note per loader for
+an explicit ``limit_*_batches``, "Restoring states ...") are dropped: a training start prints its own
+line (:mod:`src.run_info`). Its warnings stay, except a deprecation inside Lightning's own code (not
+the user's to fix) and the loader-worker hint (``data.num_workers`` is chosen from the machine:
+``${loader_workers:N}``, :func:`src.config.loader_workers`).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+LIGHTNING_LOGGERS = ("lightning.pytorch", "lightning.fabric")
+IGNORED_WARNINGS = (
+    r"(?s).*isinstance\(treespec, LeafSpec\)",  # torch deprecation raised inside lightning/pytorch/utilities/_pytree.py
+    r"The '\w+' does not have many workers",
+)
+
+
+def quiet_lightning() -> None:
+    """Lightning's loggers at WARNING; the warnings of :data:`IGNORED_WARNINGS` ignored."""
+    for name in LIGHTNING_LOGGERS:
+        logging.getLogger(name).setLevel(logging.WARNING)
+    for message in IGNORED_WARNINGS:
+        warnings.filterwarnings("ignore", message=message)
