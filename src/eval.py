@@ -24,6 +24,7 @@ from src.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
 from src.reporting import report_test_metrics, save_resolved_config
+from src.test_record import test_set_record
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -66,9 +67,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
     trainer = build_trainer(cfg, with_checkpoints=False)
-    trainer.test(module, datamodule=datamodule)
+    trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, ckpt_path)
+    report_test_metrics(trainer, cfg, metrics, ckpt_path, **test_set_record(trainer))
     return metrics
 
 

@@ -30,6 +30,8 @@ from src.config import register_resolvers
 from src.errors import ConfigError
 from src.failures import job_main
 from src.reporting import report_test_metrics, save_resolved_config
+from src.run_info import require_prepared_paper_data
+from src.test_record import test_set_record
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -83,10 +85,11 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
+    require_prepared_paper_data(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True)
     save_resolved_config(cfg)
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = build_module(cfg.model)
     trainer = build_trainer(cfg)
@@ -98,10 +101,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if not cfg.test_after_fit:
         return {}
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-    trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
+    trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
-                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path)
+                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path, **test_set_record(trainer))
     return metrics
 
 
