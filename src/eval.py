@@ -24,7 +24,7 @@ from src.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
 from src.reporting import report_test_metrics, save_resolved_config
-from src.test_record import test_set_record
+from src.evaluated import evaluated_record
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -69,7 +69,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     trainer = build_trainer(cfg, with_checkpoints=False)
     trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, ckpt_path, **test_set_record(trainer))
+    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer))
     return metrics
 
 

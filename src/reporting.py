@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.distributed import global_rank
 from src.files import write_text_atomic
-from src.test_record import describe_test_set
+from src.evaluated import describe_evaluated
 
 
 def save_resolved_config(cfg: DictConfig) -> None:
@@ -52,7 +52,7 @@ def report_test_metrics(
     context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
                "dataset": cfg.data.dataset, **extra}
     write_metrics(metrics, Path(cfg.output_dir), context)
-    tested = describe_test_set(extra) if "test_pairs" in extra else f"{cfg.data.dataset} data"
+    tested = describe_evaluated(extra) if "test_pairs" in extra else f"{cfg.data.dataset} data"
     print(f"\nTest metrics ({cfg.task_name} protocol, {cfg.sampling}, {cfg.partial}; {tested}; Error(R) in degrees, "
           f"lower is better):\n{format_metrics(metrics)}\nwrote {Path(cfg.output_dir) / 'metrics.json'} and metrics.csv")
 

@@ -146,8 +146,9 @@ class TrainingForecast(L.Callback):
                 f"{trainer.global_step}: the remaining {remaining:,} steps take ~{format_duration(remaining * seconds_per_step)} "
                 "on this machine (validation extra)")
         if trainer.strategy.root_device.type == "cpu" and total * seconds_per_step > self.long_hours * 3600:
-            network = type(getattr(pl_module, "network", pl_module)).__name__
+            advice = cpu_sized(type(getattr(pl_module, "network", pl_module)).__name__)
+            advice += "" if "trainer.max_steps" in advice else " trainer.max_steps=N"
             line += (f"\ntrain: {total:,} steps would take ~{format_duration(total * seconds_per_step)} on this CPU: for a "
-                     f"CPU-sized run add `{cpu_sized(network)} trainer.max_steps=N` (README: Expected runtimes), or train "
+                     f"CPU-sized run add `{advice}` (README: Expected runtimes), or train "
                      "on a GPU (trainer=gpu)")
         return line

@@ -31,7 +31,7 @@ from src.errors import ConfigError
 from src.failures import job_main
 from src.reporting import report_test_metrics, save_resolved_config
 from src.run_info import require_prepared_paper_data
-from src.test_record import test_set_record
+from src.evaluated import evaluated_record
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -104,7 +104,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
-                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path, **test_set_record(trainer))
+                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path, **evaluated_record(trainer))
     return metrics
 
 

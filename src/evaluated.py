@@ -1,7 +1,7 @@
 """What a test actually ran on, read from the data rather than the experiment's name.
 
-:class:`TestPairCount` (``conf/callbacks/default.yaml``) counts the pairs a test evaluated (every
-process, summed); :func:`test_set_record` adds what they were: the dataset, the cache split, the
+:class:`PairCounter` (``conf/callbacks/default.yaml``) counts the pairs a test evaluated (every
+process, summed); :func:`evaluated_record` adds what they were: the dataset, the cache split, the
 categories of the evaluated shapes (from their labels: bathtubs evaluated through ``+exp=real_airplane``
 are bathtubs) and how many shapes. ``src.train`` and ``src.eval`` write it into ``metrics.json``.
 """
@@ -20,7 +20,7 @@ from src.data.cache import Cache
 SHOWN_CATEGORIES = 4
 
 
-class TestPairCount(L.Callback):
+class PairCounter(L.Callback):
     """The number of pairs of the last test (``pairs``), summed over processes."""
 
     def __init__(self) -> None:
@@ -37,10 +37,10 @@ class TestPairCount(L.Callback):
         self.pairs = int(trainer.strategy.reduce(torch.tensor(self.pairs), reduce_op="sum"))
 
 
-def test_set_record(trainer: L.Trainer) -> dict[str, Any]:
+def evaluated_record(trainer: L.Trainer) -> dict[str, Any]:
     """``test_pairs``, ``test_dataset`` and, for a cache datamodule, ``test_split``, ``test_categories`` (a
-    list) and ``test_shapes`` of the trainer's last test (needs its :class:`TestPairCount`)."""
-    counter = next(c for c in trainer.callbacks if isinstance(c, TestPairCount))
+    list) and ``test_shapes`` of the trainer's last test (needs its :class:`PairCounter`)."""
+    counter = next(c for c in trainer.callbacks if isinstance(c, PairCounter))
     datamodule = trainer.datamodule
     record: dict[str, Any] = {"test_pairs": counter.pairs, "test_dataset": str(datamodule.dataset)}
     cache, test_set = getattr(datamodule, "cache", None), getattr(datamodule, "datasets", {}).get("test")
@@ -53,7 +53,7 @@ def test_set_record(trainer: L.Trainer) -> dict[str, Any]:
                      "test_shapes": int(len(np.unique(shapes)))}
 
 
-def describe_test_set(record: dict[str, Any]) -> str:
+def describe_evaluated(record: dict[str, Any]) -> str:
     """``32 pairs of synthetic data, split test: airplanes, cars, ... (7 categories), 32 shapes``."""
     text = f"{record['test_pairs']} pairs of {record['test_dataset']} data"
     if "test_split" not in record:
