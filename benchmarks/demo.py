@@ -313,6 +313,7 @@ def _group_config(cfg: DictConfig, entries: Sequence[Entry], output_dir: Path) -
     """``cfg`` for the grid run of ``entries`` (one checkpoint at most)."""
     group = copy.deepcopy(cfg)
     group.benchmark.methods = [entry.method for entry in entries]
+    group.benchmark.reference = None  # the demo's own first row is the identity
     for entry in entries:
         if entry.checkpoint is not None:
             group.method_options[entry.method].checkpoint = str(entry.checkpoint)
