@@ -15,7 +15,10 @@ metrics); ``demo.pairs=all`` takes them all. On those pairs it evaluates, throug
 grid's), the methods of ``conf/benchmark/demo.yaml`` (identity, ICP, FGR), the shipped checkpoint
 (``checkpoints/*.json``: :func:`~src.models.pretrained.find_shipped`'s for the run's experiment, else
 the card closest to it, evaluated here whatever it was trained for and labelled so) and the run's own
-best checkpoint. It prints a compact table (Error(R), Error(t), RMSE(R), ms/pair) and writes
+best checkpoint; the identity is always its first row. A run whose model does not beat the identity's
+Error(R) (a few CPU minutes of training do not) is labelled a pipeline check, with what a useful run
+needs: the shipped model's steps, batch, CPU-hours and validation curve, from its card. It prints a
+compact table (Error(R), Error(t), RMSE(R), ms/pair; units and "lower is better" in the header) and writes
 ``demo.md`` and ``demo.tex`` into the run dir; the grid's files go to ``<run>/demo/<group>/``, and a
 re-run reuses their finished cells.
 

@@ -1,6 +1,6 @@
 """Evaluate a checkpoint on an experiment's fixed test set and print the metrics table.
 
-    python -m src.eval +exp=unseen_categories     # the shipped checkpoint for it (checkpoints/*.json)
+    python -m src.eval +exp=unseen_categories data=synthetic   # the shipped checkpoint for it (checkpoints/*.json)
     python -m src.eval +exp=unseen_categories ckpt_path=outputs/.../checkpoints/best-*.ckpt
     python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
     python -m src.eval model=dcp +exp=dcp_protocol data=modelnet40 weights=official:dcp_v1   # published weights

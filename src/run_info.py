@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from typing import Any
 import lightning as L
 import torch
 from omegaconf import DictConfig
+from tqdm import tqdm
 
 from src.config import usable_cores
 from src.data.cache import default_cache_root
@@ -70,10 +72,10 @@ def format_duration(seconds: float) -> str:
     return f"{seconds / (365 * 86400):.1f} years"
 
 
-def say(trainer: L.Trainer, text: str) -> None:
-    """Print ``text`` above the progress bar (not into its line)."""
-    bar = trainer.progress_bar_callback
-    (bar.print if bar is not None else print)(text)
+def say(text: str) -> None:
+    """Print ``text`` above any progress bar (not into its line), flushed (a redirected stdout keeps the order)."""
+    tqdm.write(text, file=sys.stdout)
+    sys.stdout.flush()
 
 
 def _device(trainer: L.Trainer) -> str:
@@ -114,7 +116,7 @@ class TrainingForecast(L.Callback):
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._first, self._paused, self._done = None, 0.0, False
         if trainer.is_global_zero:
-            say(trainer, start_line(trainer, pl_module))
+            say(start_line(trainer, pl_module))
 
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._pause_start = time.perf_counter()
@@ -136,7 +138,7 @@ class TrainingForecast(L.Callback):
         self._done = True
         if trainer.is_global_zero:
             seconds = (now - self._first[1] - self._paused) / steps
-            say(trainer, self.forecast(trainer, pl_module, seconds))
+            say(self.forecast(trainer, pl_module, seconds))
 
     def forecast(self, trainer: L.Trainer, pl_module: L.LightningModule, seconds_per_step: float) -> str:
         """The estimate line for ``seconds_per_step`` measured now."""

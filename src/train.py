@@ -1,15 +1,16 @@
 """Train a registration network, then evaluate its best checkpoint on the experiment's test set.
 
     python -m src.train                                   # OMNet on the embedded synthetic default
-    python -m src.train +exp=unseen_categories data=modelnet40   # the paper's experiment on ModelNet40
-    python -m src.train +exp=unseen_shapes trainer=smoke  # 2-minute CPU demo on the synthetic default
+    python -m src.train +exp=unseen_categories            # the paper's experiment on ModelNet40 (once prepared)
+    python -m src.train +exp=unseen_shapes data=synthetic trainer=smoke   # a few-minute CPU pipeline check
     python -m src.train ... ckpt_path=outputs/.../checkpoints/last.ckpt   # resume
     python -m src.train -m +sweep=noise                   # a paper study as a sweep (docs/sweeps.md)
 
 A failing job writes ``failure.json`` into its run dir; ``on_failure=auto`` (default) then goes on
 with the sweep in a multirun and re-raises in a single run (``record`` / ``raise`` to force).
 
-Refused in one ``error:`` line before training: a checkpoint to resume that is missing, unreadable,
+Refused in one ``error:`` line before training: ModelNet40 (the paper's experiments' data) never prepared
+(:func:`src.run_info.require_prepared_paper_data`); a checkpoint to resume that is missing, unreadable,
 of another network or weights-only; a training set smaller than one batch; a value the network
 rejects. After training: a run that made no optimisation step (nothing to test).
 """
