@@ -102,3 +102,13 @@ def test_unreadable_files_stop_with_one_error_line(tmp_path, capsys, name, conte
 
 def test_without_arguments_it_still_lists_the_methods(capsys):
     assert main([]) == 0 and "| `fgr` |" in capsys.readouterr().out
+
+
+def test_ascii_pcd_and_text_with_a_header_line_are_read(tmp_path):
+    expected = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.5]])
+    rows = "\n".join(" ".join(f"{v:g}" for v in row) for row in expected)
+    (tmp_path / "a.pcd").write_text("# .PCD v.7\nVERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                                    f"WIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n{rows}\n")
+    (tmp_path / "a.csv").write_text("x,y,z,intensity\n" + "\n".join(",".join(f"{v:g}" for v in [*r, 7]) for r in expected))
+    assert np.array_equal(read_points(tmp_path / "a.pcd"), expected)
+    assert np.array_equal(read_points(tmp_path / "a.csv"), expected)
