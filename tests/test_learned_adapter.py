@@ -122,7 +122,8 @@ def test_learned_method_in_the_grid(omnet_ckpt, tmp_path):
             f"data.cache_root={tmp_path / 'cache'}"]
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("benchmark_grid", overrides=[
-            "benchmark.methods=[omnet]", "benchmark.experiments=[unseen_shapes]", "benchmark.samplings=[ts]",
+            "benchmark.methods=[omnet]", "benchmark.reference=null", "benchmark.experiments=[unseen_shapes]",
+            "benchmark.samplings=[ts]",
             "benchmark.partials=[prnet,rpmnet]", "benchmark.max_pairs=3", "progress=false", "paper=false",
             "benchmark.overrides=[" + ",".join(f'"{o}"' for o in tiny) + "]",
             # a checkpoint per cell pattern; none matches the RPMNet-manner cell
