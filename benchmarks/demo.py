@@ -15,7 +15,10 @@ metrics); ``demo.pairs=all`` takes them all. On those pairs it evaluates, throug
 grid's), the methods of ``conf/benchmark/demo.yaml`` (identity, ICP, FGR), the shipped checkpoint
 (``checkpoints/*.json``: :func:`~src.models.pretrained.find_shipped`'s for the run's experiment, else
 the card closest to it, evaluated here whatever it was trained for and labelled so) and the run's own
-best checkpoint. It prints a compact table (Error(R), Error(t), RMSE(R), ms/pair) and writes
+best checkpoint; the identity is always its first row. A run whose model does not beat the identity's
+Error(R) (a few CPU minutes of training do not) is labelled a pipeline check, with what a useful run
+needs: the shipped model's steps, batch, CPU-hours and validation curve, from its card. It prints a
+compact table (Error(R), Error(t), RMSE(R), ms/pair; units and "lower is better" in the header) and writes
 ``demo.md`` and ``demo.tex`` into the run dir; the grid's files go to ``<run>/demo/<group>/``, and a
 re-run reuses their finished cells.
 
@@ -28,6 +31,7 @@ import argparse
 import copy
 import json
 import math
+import re
 import sys
 import time
 from collections.abc import Sequence
@@ -51,6 +55,15 @@ TABLE_NAME = "demo"
 SHARED_KEYS = ("dataset", "sampling", "partial")
 #: ``demo.pairs`` of ``conf/benchmark/demo.yaml``: the pairs the run's own test evaluated, or all.
 PAIRS = ("tested", "all")
+#: The reference row, always first.
+IDENTITY = "identity"
+IDENTITY_LABEL = display_name(IDENTITY)
+#: The CSV logger records a validation at global step - 1 (best-8.ckpt's validation is logged at step 7).
+LOGGED_STEP_OFFSET = 1
+#: How a card's note states the training's cost, e.g. "1.21 CPU hours".
+CPU_HOURS = re.compile(r"([\d.]+) CPU hours")
+UNITS = ("Lower is better in every column (↓): Error(R) and RMSE(R) in degrees, Error(t) in the shapes' units (each "
+         "shape lies in the unit sphere), times in ms per pair.")
 
 
 @dataclass(frozen=True)
@@ -189,11 +202,18 @@ def _learned(target: str, where: str) -> Method:
     return method
 
 
-def checkpoint_label(method: Method, who: str, network: dict[str, Any], steps: Any) -> str:
-    """``OMNet (this run: 16 steps, width 0.25)``: the method, whose weights, how trained."""
-    details = [f"{steps} steps" if steps is not None else None,
-               f"width {network['width']:g}" if network.get("width") is not None else None]
+def checkpoint_label(method: Method, who: str, network: dict[str, Any], best: int | None, steps: int | None) -> str:
+    """``OMNet (this run: best at step 8 of 16, width 0.25)``: the method, whose weights, how trained
+    (the step of the kept checkpoint, of how many steps run)."""
+    trained = None if best is None else f"best at step {best:,}" + (f" of {steps:,}" if steps else "")
+    details = [trained, f"width {network['width']:g}" if network.get("width") is not None else None]
     return f"{method.display} ({who}: {', '.join(d for d in details if d)})"
+
+
+def steps_run(run: Run) -> int | None:
+    """How many optimisation steps the run made (its ``metrics.json``; None before its test)."""
+    metrics = run.path / "metrics.json"
+    return json.loads(metrics.read_text()).get("global_step") if metrics.is_file() else None
 
 
 def run_entry(run: Run) -> Entry:
@@ -203,7 +223,7 @@ def run_entry(run: Run) -> Entry:
     checkpoint = read_checkpoint(run.checkpoint)
     network = checkpoint["hyper_parameters"]["network"]
     method = _learned(network["_target_"], str(run.checkpoint))
-    label = checkpoint_label(method, "this run", network, checkpoint.get("global_step"))
+    label = checkpoint_label(method, "this run", network, checkpoint.get("global_step"), steps_run(run))
     return Entry(method.key, label, run.checkpoint)
 
 
@@ -230,14 +250,44 @@ def shipped_entry(run: Run, directory: Path) -> tuple[Entry | None, str]:
         return None, f"no shipped checkpoint in {directory} (a .json card with its .ckpt): its row is left out"
     path, card = found
     method = _learned(card["network"]["_target_"], str(path))
-    entry = Entry(method.key, checkpoint_label(method, "shipped", card["network"],
-                                               card.get("training", {}).get("step_of_checkpoint")), path)
+    training = card.get("training", {})
+    entry = Entry(method.key, checkpoint_label(method, "shipped", card["network"], training.get("step_of_checkpoint"),
+                                               training.get("steps_run")), path)
     trained = card["experiment"]
     what = ", ".join(f"{k}={trained[k]}" for k in run.identity)
     differ = ", ".join(f"{k}={v}" for k, v in run.identity.items() if trained[k] != v)
     if not differ:
         return entry, f"{entry.label}: {path.name}, trained for this run's experiment ({what})"
     return entry, f"{entry.label}: {path.name}, trained for {what}; evaluated here on this run's pairs ({differ})"
+
+
+def _cpu_hours(card: dict[str, Any]) -> str:
+    """`` (1.21 CPU-h)`` as the card's note records the training's cost, else empty."""
+    found = CPU_HOURS.search(card.get("note", ""))
+    return f" ({found.group(1)} CPU-h)" if found else ""
+
+
+def pipeline_check_note(tidy: Any, mine: Entry, run: Run, card: dict[str, Any] | None) -> str | None:
+    """When the run's own model does not beat the identity's Error(R): what the run is (a pipeline check) and
+    what a useful one needs, from the shipped model's card: its budget and its validation curve, with the
+    step at which it first beat the identity's Error(R) on these pairs. None when the run beats the identity."""
+    errors = tidy[tidy["metric"] == "Error(R)"].set_index("method")["value"]
+    identity, own = float(errors[IDENTITY_LABEL]), float(errors[mine.label])
+    if own < identity:
+        return None
+    steps, batch = steps_run(run), run.cfg.data.batch_size
+    note = (f"{mine.label} is a pipeline check, not a result: {steps or '?'} steps of batch {batch} do not learn "
+            f"registration (Error(R) {own:.1f}° against the identity's {identity:.1f}°)")
+    if card is None:
+        return note
+    training = card["training"]
+    curve = [(point["step"] + LOGGED_STEP_OFFSET, point["Error(R)"]) for point in training.get("validation", [])]
+    first = next((step for step, error in curve if error < identity), None)
+    beat = (f"; its validation Error(R) first fell below {identity:.1f}° after {first:,} steps" if first else "")
+    shown = ", ".join(f"{error:.1f}° at {step:,}" for step, error in curve)
+    return (f"{note}. A useful model needs a longer run: the shipped one trained {training['steps_run']:,} steps of "
+            f"batch {training['batch_size']}{_cpu_hours(card)}{beat} (validation curve: {shown}); its command is in "
+            f"its card, {card['name']}.json (README: Shipped checkpoints)")
 
 
 # --- the comparison --------------------------------------------------------------------------------
@@ -266,6 +316,7 @@ def _group_config(cfg: DictConfig, entries: Sequence[Entry], output_dir: Path) -
     """``cfg`` for the grid run of ``entries`` (one checkpoint at most)."""
     group = copy.deepcopy(cfg)
     group.benchmark.methods = [entry.method for entry in entries]
+    group.benchmark.reference = None  # the demo's own first row is the identity
     for entry in entries:
         if entry.checkpoint is not None:
             group.method_options[entry.method].checkpoint = str(entry.checkpoint)
@@ -312,16 +363,19 @@ def demo_table(tidy: Any, run: Run, notes: Sequence[str]) -> tables.Table:
     experiment = EXPERIMENT_LABELS.get(canonical_experiment(run.experiment), run.experiment)
     manner = {"prnet": "PRNet manner", "rpmnet": "RPMNet manner"}.get(first["partial"], f"partial={first['partial']}")
     caption = (f"Demo comparison on the {int(first['n_pairs'])} test pairs of the run "
-               f"{'/'.join(run.path.parts[-2:])}: {experiment}, {first['dataset']} data, {first['sampling']}, {manner}.")
+               f"{'/'.join(run.path.parts[-2:])}: {experiment}, {first['dataset']} data, {first['sampling']}, {manner}. "
+               f"{UNITS}")
     return tables.Table(TABLE_NAME, metrics, [str(first["sampling"])], [tables.Block(None, rows)], caption,
-                        f"tab:{TABLE_NAME}", list(notes))
+                        f"tab:{TABLE_NAME}", list(notes), header_units=True)
 
 
-def _notes(run: Run, shipped_note: str, cells: Sequence[dict[str, Any]], tested: bool) -> list[str]:
-    """What the table's reader must know: the shipped row, the pairs, the data, failures, the times."""
+def _notes(run: Run, shipped_note: str, cells: Sequence[dict[str, Any]], tested: bool,
+           check: str | None) -> list[str]:
+    """What the table's reader must know: what the run's row is, the shipped row, the pairs, the data,
+    failures, the times."""
     import torch
 
-    notes = [shipped_note]
+    notes = [*([check] if check else []), shipped_note]
     used, total = cells[0]["n_pairs"], cells[0]["definition"]["test_set"]["num_test_pairs"]
     if used < total:
         which = ", those the run was tested on" if tested else ""
@@ -356,11 +410,15 @@ def run_demo(run_dir: Path, overrides: Sequence[str] = (), shipped_dir: Path | N
     tested = cfg.demo.pairs == "tested" and cfg.benchmark.max_pairs is None
     if tested:
         cfg.benchmark.max_pairs = own_test_pairs(run, cfg.benchmark.overrides)
-    classical = [Entry(get_method(m).key, display_name(m)) for m in cfg.benchmark.methods]
-    shipped, shipped_note = shipped_entry(run, SHIPPED_DIR if shipped_dir is None else shipped_dir)
-    entries = [*classical, *([shipped] if shipped else []), run_entry(run)]
-    tidy, cells = compare(run, entries, cfg)
-    table = demo_table(tidy, run, _notes(run, shipped_note, cells, tested))
+    methods = [IDENTITY, *(m for m in cfg.benchmark.methods if get_method(m).key != IDENTITY)]
+    classical = [Entry(get_method(m).key, display_name(m)) for m in methods]
+    directory = SHIPPED_DIR if shipped_dir is None else shipped_dir
+    shipped, shipped_note = shipped_entry(run, directory)
+    mine = run_entry(run)
+    tidy, cells = compare(run, [*classical, *([shipped] if shipped else []), mine], cfg)
+    card = shipped_card(run, directory) if shipped else None
+    check = pipeline_check_note(tidy, mine, run, None if card is None else card[1])
+    table = demo_table(tidy, run, _notes(run, shipped_note, cells, tested, check))
     written = write_tables(table, run.path)
     print("\n" + written[0].read_text())
     print(f"wrote {written[0]} and {written[1]} (the grid's files: {run.path / 'demo'}/)\n"

@@ -343,6 +343,9 @@ def plan(cfg: DictConfig) -> tuple[list[Cell], list[str]]:
     for method in methods:
         resolve_registrator(method)  # ConfigError naming the available methods
     methods = [resolve_registrator(m).name for m in methods]
+    reference = bench.get("reference")
+    if reference and resolve_registrator(reference).name not in methods:  # the reference row, whatever the list
+        methods.append(resolve_registrator(reference).name)
     experiments = _names(bench.experiments, "experiments")
     samplings = _names(bench.samplings, "samplings", SAMPLINGS)
     partials = _names(bench.partials, "partials", PARTIALS)

@@ -3,7 +3,8 @@
 :func:`check_latex` reports unbalanced braces, mismatched ``\\begin``/``\\end`` environments and
 tabular rows whose cell count (``&`` separators, ``\\multicolumn`` spans) differs from the column
 specification. :func:`tabular_rows` splits a tabular into rows of cell strings, e.g. to read the
-numbers back. :func:`compile_latex` runs ``pdflatex`` when one is installed.
+numbers back. :func:`compile_latex` runs ``pdflatex`` when one is installed, keeps the PDF, and names a missing
+package in one line (:func:`latex_failure`).
 """
 
 from __future__ import annotations
@@ -162,8 +163,25 @@ def check_latex(text: str) -> list[str]:
     return problems
 
 
-def compile_latex(text: str, engine: str = "pdflatex", timeout: float = 60) -> tuple[bool | None, str]:
-    """Compile a standalone document; (None, reason) when no engine is installed."""
+_MISSING_FILE = re.compile(r"! LaTeX Error: File `([^']+)' not found")
+
+
+def latex_failure(log: str) -> str:
+    """One line for a failed compilation: the missing package (``booktabs.sty`` not found) and how to get
+    it, else the log's first error line."""
+    missing = _MISSING_FILE.search(log)
+    if missing:
+        name = missing.group(1)
+        package = name.removesuffix(".sty")
+        return (f"the LaTeX package {package} is not installed ({name} not found): install it (TeX Live: `tlmgr install "
+                f"{package}`; Debian: apt-get install texlive-latex-recommended) or compile the .tex elsewhere")
+    errors = [line for line in log.splitlines() if line.startswith("!")]
+    return errors[0] if errors else "pdflatex failed (no error line in its log)"
+
+
+def compile_latex(text: str, pdf: Path, engine: str = "pdflatex", timeout: float = 60) -> tuple[bool | None, str]:
+    """Compile a standalone document into ``pdf``: (True, ""), (False, :func:`latex_failure`'s line), or
+    (None, reason) when no engine is installed."""
     exe = shutil.which(engine)
     if exe is None:
         return None, f"{engine} not installed"
@@ -174,5 +192,8 @@ def compile_latex(text: str, engine: str = "pdflatex", timeout: float = 60) -> t
             [exe, "-interaction=nonstopmode", "-halt-on-error", source.name], cwd=tmp, capture_output=True,
             text=True, timeout=timeout,
         )
-        ok = result.returncode == 0 and (Path(tmp) / "table.pdf").is_file()
-        return ok, result.stdout[-2000:]
+        built = Path(tmp) / "table.pdf"
+        if result.returncode != 0 or not built.is_file():
+            return False, latex_failure(result.stdout)
+        shutil.copyfile(built, pdf)
+        return True, ""

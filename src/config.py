@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 
 from omegaconf import OmegaConf
@@ -23,11 +24,27 @@ def add_ints(*values: int | str) -> int:
     return sum(int(v) for v in values)
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, e.g. a container's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def loader_workers(most: int | str) -> int:
+    """``${loader_workers:N}``: data-loader worker processes for this machine: one core is left to the
+    training process, and at most ``N`` (2 cores: 1 worker; 16 cores: N)."""
+    return max(0, min(int(most), usable_cores() - 1))
+
+
 def register_resolvers() -> None:
     if not OmegaConf.has_resolver("euler_seq"):
         OmegaConf.register_new_resolver("euler_seq", euler_seq_for)
     if not OmegaConf.has_resolver("add"):
         OmegaConf.register_new_resolver("add", add_ints)
+    if not OmegaConf.has_resolver("loader_workers"):
+        OmegaConf.register_new_resolver("loader_workers", loader_workers)
 
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml deliberately share their names with the launcher

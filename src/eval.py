@@ -1,6 +1,6 @@
 """Evaluate a checkpoint on an experiment's fixed test set and print the metrics table.
 
-    python -m src.eval +exp=unseen_categories     # the shipped checkpoint for it (checkpoints/*.json)
+    python -m src.eval +exp=unseen_categories data=synthetic   # the shipped checkpoint for it (checkpoints/*.json)
     python -m src.eval +exp=unseen_categories ckpt_path=outputs/.../checkpoints/best-*.ckpt
     python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
     python -m src.eval model=dcp +exp=dcp_protocol data=modelnet40 weights=official:dcp_v1   # published weights
@@ -25,6 +25,7 @@ from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
 from src.recorded import refuse_unused_in_eval
 from src.reporting import report_test_metrics, save_resolved_config
+from src.evaluated import evaluated_record
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -69,9 +70,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
     trainer = build_trainer(cfg, with_checkpoints=False)
-    trainer.test(module, datamodule=datamodule)
+    trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, ckpt_path)
+    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer))
     return metrics
 
 

@@ -11,6 +11,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from src.distributed import global_rank
+from src.evaluated import describe_evaluated
 from src.files import write_atomic, write_text_atomic
 
 
@@ -36,7 +37,8 @@ def write_metrics(metrics: dict[str, float], output_dir: Path, context: dict[str
     """metrics.json (context + metrics) and metrics.csv (one tidy row per metric)."""
     output_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(output_dir / "metrics.json", json.dumps({**context, "metrics": metrics}, indent=2))
-    frame = pd.DataFrame([{**context, "metric": k, "value": v} for k, v in metrics.items()])
+    flat = {k: ", ".join(map(str, v)) if isinstance(v, list) else v for k, v in context.items()}  # (lists: one cell)
+    frame = pd.DataFrame([{**flat, "metric": k, "value": v} for k, v in metrics.items()])
     write_atomic(output_dir / "metrics.csv", lambda path: frame.to_csv(path, index=False))
 
 
@@ -50,7 +52,9 @@ def report_test_metrics(
     context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
                "dataset": cfg.data.dataset, **extra}
     write_metrics(metrics, Path(cfg.output_dir), context)
-    print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
+    tested = describe_evaluated(extra) if "test_pairs" in extra else f"{cfg.data.dataset} data"
+    print(f"\nTest metrics ({cfg.task_name} protocol, {cfg.sampling}, {cfg.partial}; {tested}; Error(R) in degrees, "
+          f"lower is better):\n{format_metrics(metrics)}\nwrote {Path(cfg.output_dir) / 'metrics.json'} and metrics.csv")
 
 
 def format_metrics(metrics: dict[str, float]) -> str:

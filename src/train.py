@@ -1,15 +1,16 @@
 """Train a registration network, then evaluate its best checkpoint on the experiment's test set.
 
     python -m src.train                                   # OMNet on the embedded synthetic default
-    python -m src.train +exp=unseen_categories data=modelnet40   # the paper's experiment on ModelNet40
-    python -m src.train +exp=unseen_shapes trainer=smoke  # 2-minute CPU demo on the synthetic default
+    python -m src.train +exp=unseen_categories            # the paper's experiment on ModelNet40 (once prepared)
+    python -m src.train +exp=unseen_shapes data=synthetic trainer=smoke   # a few-minute CPU pipeline check
     python -m src.train ... ckpt_path=outputs/.../checkpoints/last.ckpt   # resume
     python -m src.train -m +sweep=noise                   # a paper study as a sweep (docs/sweeps.md)
 
 A failing job writes ``failure.json`` into its run dir; ``on_failure=auto`` (default) then goes on
 with the sweep in a multirun and re-raises in a single run (``record`` / ``raise`` to force).
 
-Refused in one ``error:`` line before training: a checkpoint to resume that is missing, unreadable,
+Refused in one ``error:`` line before training: ModelNet40 (the paper's experiments' data) never prepared
+(:func:`src.run_info.require_prepared_paper_data`); a checkpoint to resume that is missing, unreadable,
 of another network or weights-only; a training set smaller than one batch; a value the network
 rejects. After training: a run that made no optimisation step (nothing to test).
 """
@@ -31,6 +32,8 @@ from src.errors import ConfigError
 from src.failures import job_main
 from src.recorded import refuse_unused_in_train
 from src.reporting import report_test_metrics, save_resolved_config
+from src.run_info import require_prepared_paper_data
+from src.evaluated import evaluated_record
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -85,10 +88,11 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
     refuse_unused_in_train(cfg)
+    require_prepared_paper_data(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
     save_resolved_config(cfg)
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = build_module(cfg.model)
     trainer = build_trainer(cfg)
@@ -100,10 +104,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if not cfg.test_after_fit:
         return {}
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-    trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
+    trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
-                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path)
+                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path, **evaluated_record(trainer))
     return metrics
 
 

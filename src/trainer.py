@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 from src.checkpoint_io import AtomicCheckpointIO
 from src.files import remove_stale_temporaries
 from src.lightning_compat import patch_ddp_subprocess_launcher
+from src.quiet import quiet_lightning
 from src.signals import CheckpointOnSignal
 
 log = logging.getLogger(__name__)
@@ -28,6 +29,7 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
     the target, then a rename); temporaries left in the checkpoint folders by killed runs are
     removed here, before training starts.
     """
+    quiet_lightning()
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [
         hydra.utils.instantiate(c)

@@ -9,7 +9,19 @@ from pathlib import Path
 import pytest
 from registration_helpers import TINY, compose_config, tiny_config
 
-from benchmarks.demo import Run, best_checkpoint, data_overrides, find_run, load_run, main, own_test_pairs, run_demo
+from benchmarks.demo import (
+    IDENTITY_LABEL,
+    Entry,
+    Run,
+    best_checkpoint,
+    data_overrides,
+    find_run,
+    load_run,
+    main,
+    own_test_pairs,
+    pipeline_check_note,
+    run_demo,
+)
 from benchmarks.latex_check import check_latex, tabular_rows, tabulars
 from src.eval import evaluate
 from src.models.pretrained import export
@@ -49,12 +61,13 @@ def test_demo_compares_five_methods_on_the_runs_own_test_pairs(run_dir, tmp_path
     assert check_latex(tex) == []
     rows = _rows(tex)
     step = json.loads((run_dir / "metrics.json").read_text())["checkpoint"].rsplit("-", 1)[1].split(".")[0]
-    mine, shipped_row = (f"OMNet ({who}: {step} steps, width 0.0625)" for who in ("this run", "shipped"))
+    mine, shipped_row = (f"OMNet ({who}: best at step {step} of 2, width 0.0625)" for who in ("this run", "shipped"))
     assert list(rows) == ["Identity (no registration)", "ICP", "FGR", shipped_row, mine]
     assert all(len(values) == 4 for values in rows.values())  # Error(R), Error(t), RMSE(R), ms/pair
     assert all(f"| {label} |" in md for label in rows)
     assert "the 2 test pairs" in md and "the first 2 of the test set's 7 pairs, those the run was tested on" in md
     assert "trained for task=unseen_categories" in md and "synthetic data" in md
+    assert "| Method | Error(R) (°) ↓ | Error(t) ↓ | RMSE(R) (°) ↓ | ms/pair ↓ |" in md and "Lower is better" in md
 
     # the run's own row repeats the run's own test (its first batch of 2 pairs): the same test set
     expected = json.loads((run_dir / "metrics.json").read_text())["metrics"]
@@ -67,9 +80,10 @@ def test_demo_compares_five_methods_on_the_runs_own_test_pairs(run_dir, tmp_path
 
 
 def test_without_a_shipped_checkpoint_its_row_is_left_out_with_a_note(run_dir, tmp_path):
-    """Also: every test pair (demo.pairs=all), and the same numbers as src.eval on them."""
+    """Also: every test pair (demo.pairs=all), the same numbers as src.eval on them, and the identity's row
+    kept when the user's benchmark.methods leaves it out."""
     (tmp_path / "none").mkdir()
-    overrides = ["benchmark.methods=[identity]", "demo.pairs=all"]
+    overrides = ["benchmark.methods=[]", "demo.pairs=all"]
     markdown, latex = run_demo(run_dir, overrides, shipped_dir=tmp_path / "none")
     rows = _rows(latex.read_text())
     assert [label.split(" (")[0] for label in rows] == ["Identity", "OMNet"]
@@ -148,3 +162,29 @@ def test_bad_demo_settings_stop_with_one_error_line(run_dir, capsys, override, m
     assert main(["--run", str(run_dir), override]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(message), err
+
+
+def _tidy(errors: dict[str, float]):
+    import pandas as pd
+
+    return pd.DataFrame([{"method": label, "metric": "Error(R)", "value": value} for label, value in errors.items()])
+
+
+@pytest.mark.parametrize("own, expected", [(80.0, "pipeline check"), (30.0, None)])
+def test_a_run_that_does_not_beat_the_identity_is_labelled_a_pipeline_check(run_dir, own, expected):
+    """With the shipped card: its budget, its CPU hours and the step its validation first beat the identity."""
+    run = load_run(run_dir)
+    mine = Entry("omnet", "OMNet (this run)")
+    card = {"name": "shipped_x", "note": "... one thread, 1.5 CPU hours in two sessions ...",
+            "training": {"steps_run": 600, "batch_size": 16,
+                         "validation": [{"step": 199, "Error(R)": 50.0}, {"step": 399, "Error(R)": 35.0},
+                                        {"step": 599, "Error(R)": 30.0}]}}
+    note = pipeline_check_note(_tidy({IDENTITY_LABEL: 40.0, mine.label: own}), mine, run, card)
+    if expected is None:
+        assert note is None
+        return
+    assert note.startswith("OMNet (this run) is a pipeline check, not a result: 2 steps of batch 2")
+    assert "(Error(R) 80.0° against the identity's 40.0°)" in note
+    assert "the shipped one trained 600 steps of batch 16 (1.5 CPU-h)" in note
+    assert "first fell below 40.0° after 400 steps" in note and "50.0° at 200, 35.0° at 400, 30.0° at 600" in note
+    assert pipeline_check_note(_tidy({IDENTITY_LABEL: 40.0, mine.label: own}), mine, run, None).endswith("identity's 40.0°)")

@@ -46,6 +46,8 @@ def test_train_writes_checkpoint_that_eval_reads(tmp_path):
                            f"output_dir={tmp_path / 'eval'}")
     metrics = evaluate(eval_cfg)
     assert metrics["Error(R)"] >= 0 and (tmp_path / "eval" / "metrics.csv").is_file()
+    saved = json.loads((tmp_path / "eval" / "metrics.json").read_text())  # what it evaluated: 1 batch of 2 pairs
+    assert (saved["test_pairs"], saved["test_dataset"], saved["test_split"]) == (2, "synthetic", "test")
 
 
 def _run(*args: str, env_extra: dict | None = None) -> subprocess.CompletedProcess:

@@ -36,6 +36,7 @@ def grid_cfg(out: Path, cache_root: Path, *overrides: str, data_overrides: tuple
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         return compose("benchmark_grid", overrides=[
             "benchmark.methods=[icp,toy]",
+            "benchmark.reference=null",  # (tested on its own below)
             "benchmark.experiments=[unseen_shapes]",
             "benchmark.samplings=[ts]",
             "benchmark.partials=[prnet,rpmnet]",
@@ -158,6 +159,15 @@ def test_damaged_cell_file_is_recomputed_with_a_warning(tmp_path, cache_root, ca
     timing = ["seconds", "seconds_per_pair"]
     pd.testing.assert_frame_equal(first.tidy.drop(columns=timing), second.tidy.drop(columns=timing))
     assert len(pd.read_parquet(parquet)) == 3
+
+
+def test_a_grid_of_the_users_methods_keeps_the_identity_row(tmp_path, cache_root):
+    cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]",
+                   "benchmark.reference=identity")
+    result = grid.run_grid(cfg)
+    assert sorted(c["method"] for c in result.cells) == ["identity", "toy"]
+    identity = result.tidy[(result.tidy["method_id"] == "identity") & (result.tidy["metric"] == "Error(R)")]["value"]
+    assert float(identity.iloc[0]) == pytest.approx(_by_hand(cache_root, "rpmnet", lambda s, r: np.eye(4))["Error(R)"])
 
 
 def test_exclude_and_per_method_limits(tmp_path, cache_root):

@@ -64,8 +64,11 @@ def test_checkpoint_round_trip(omnet_ckpt):
 
 
 def test_checkpoint_errors(omnet_ckpt, tmp_path):
-    with pytest.raises(CheckpointError, match="needs a checkpoint"):
-        get_registrator("omnet")
+    with pytest.raises(CheckpointError, match="method 'dcp' needs a checkpoint and none is shipped for it in .*checkpoint=PATH"):
+        get_registrator("dcp")
+    shipped = get_registrator("omnet")  # no checkpoint: the shipped one, named in its label
+    assert shipped.label == f"OMNet (shipped: {Path(shipped.config.checkpoint).stem})"
+    assert Path(shipped.config.checkpoint).with_suffix(".json").is_file()
     with pytest.raises(CheckpointError, match="does not exist"):
         get_registrator("omnet", checkpoint=str(tmp_path / "missing.ckpt"))
     with pytest.raises(CheckpointError, match=r"holds a src\.models\.omnet\.OMNet network, not baselines\.learned\.dcp\.DCP .*method 'omnet'"):
@@ -119,7 +122,8 @@ def test_learned_method_in_the_grid(omnet_ckpt, tmp_path):
             f"data.cache_root={tmp_path / 'cache'}"]
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("benchmark_grid", overrides=[
-            "benchmark.methods=[omnet]", "benchmark.experiments=[unseen_shapes]", "benchmark.samplings=[ts]",
+            "benchmark.methods=[omnet]", "benchmark.reference=null", "benchmark.experiments=[unseen_shapes]",
+            "benchmark.samplings=[ts]",
             "benchmark.partials=[prnet,rpmnet]", "benchmark.max_pairs=3", "progress=false", "paper=false",
             "benchmark.overrides=[" + ",".join(f'"{o}"' for o in tiny) + "]",
             # a checkpoint per cell pattern; none matches the RPMNet-manner cell

@@ -127,7 +127,7 @@ def test_failing_job_is_recorded_and_the_others_survive(runs, capsys):
         (ok / "metrics.json.bak").rename(ok / "metrics.json")
 
 
-def test_latex_table_compiles_and_holds_the_collected_numbers(runs):
+def test_latex_table_compiles_and_holds_the_collected_numbers(runs, tmp_path):
     frame = collect(runs["tmp"] / "grid").tidy
     frame["method"] = "OMNet k=" + frame["data.pair.prnet_num_keep"].astype(str)
     table = build_table(frame, "table2")
@@ -148,7 +148,7 @@ def test_latex_table_compiles_and_holds_the_collected_numbers(runs):
                 seen += 1
     assert seen == 3 * len(table.metrics)
     assert "synthetic data, not ModelNet40" in tex and "| OMNet k=768 |" in to_markdown(table)
-    ok, log = compile_latex(to_latex(table, standalone=True))
+    ok, log = compile_latex(to_latex(table, standalone=True), tmp_path / "table.pdf")
     if ok is None:
         pytest.skip(f"structure checked; not compiled: {log}")
     assert ok, log

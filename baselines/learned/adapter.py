@@ -13,20 +13,23 @@ must hold the method's network (``Method.network``, also ``model.network._target
 >>> T = omnet.register_batch(src, ref)          # (B, 4, 4) in one forward pass
 >>> results = run_batches(omnet, pairs)         # like baselines.run_pairs, batched: RegistrationResults
 
-Each method requires ``checkpoint=PATH`` or ``weights=official:<name>`` (published weights imported
+Each method takes ``checkpoint=PATH`` or ``weights=official:<name>`` (published weights imported
 by :mod:`baselines.learned.published`, e.g. ``get_registrator("dcp", weights="official:dcp_v1")``, or
 the path of such a file); a missing file, an unreadable one, or weights of another network than the
 method name says raise :class:`~src.errors.CheckpointError` (one line) when the registrator is
 built, so a grid fails before it starts. The weights themselves are loaded lazily
 (:meth:`LearnedRegistrator.setup`), so the object stays cheap to build and to pickle.
 
-``fresh_weights=true`` (instead of a checkpoint) builds the network from ``conf/model/<name>.yaml``
+Without either, a method uses its shipped checkpoint (``checkpoints/*.ckpt``, :func:`shipped_checkpoint`; its
+label names it) or, when none is shipped for it, says so. ``fresh_weights=true`` (instead of a checkpoint) builds the network from ``conf/model/<name>.yaml``
 with freshly initialised weights — for timing only (:mod:`benchmarks.speed` labels it so); the
 estimates of such a network are meaningless.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -47,6 +50,7 @@ __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "read_check
 LEARNED_METHODS: dict[str, str] = {method.key: method.network for method in learned_methods()}
 DEVICES = ("auto", "cpu", "cuda")
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -111,6 +115,22 @@ def read_checkpoint_network(path: str | Path) -> str:
     return str(read_checkpoint(path)["hyper_parameters"]["network"]["_target_"])
 
 
+def shipped_checkpoint(method: str, target: str, directory: Path | None = None) -> Path:
+    """The shipped checkpoint (``checkpoints/<name>.ckpt`` with its ``.json`` card) of a network: one trained
+    on real data if any, else the first by name; CheckpointError (naming the fix) when none is shipped."""
+    from src.models.pretrained import SHIPPED_DIR  # here: keeps `import baselines` free of torch
+
+    directory = SHIPPED_DIR if directory is None else directory
+    cards = {path.with_suffix(".ckpt"): json.loads(path.read_text()) for path in sorted(directory.glob("*.json"))}
+    mine = [path for path, card in cards.items() if card["network"]["_target_"] == target and path.is_file()]
+    if not mine:
+        raise CheckpointError(
+            f"method '{method}' needs a checkpoint and none is shipped for it in {directory}: pass checkpoint=PATH "
+            f"(a .ckpt written by `python -m src.train model={method}`) or weights=official:<name>"
+        )
+    return min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
+
+
 def _used_as(target: str) -> str:
     """``; use it as method '<key>'`` for a registered network ``target`` (else nothing)."""
     method = method_of_network(target)
@@ -138,6 +158,7 @@ class LearnedRegistrator(Registrator):
         cfg: LearnedConfig = self.config
         self._module = None
         self._device = None
+        self.shipped: str | None = None  # the name of the shipped checkpoint used when none was given
         sources = [name for name in ("checkpoint", "weights", "fresh_weights") if getattr(cfg, name)]
         if len(sources) > 1:
             raise ConfigError(f"{self.name}: give one of checkpoint=PATH, weights=official:<name> or fresh_weights=true")
@@ -147,10 +168,9 @@ class LearnedRegistrator(Registrator):
             self._check_weights(cfg.weights)
             return
         if not cfg.checkpoint:
-            raise CheckpointError(
-                f"method '{self.name}' needs a checkpoint: pass checkpoint=PATH (a .ckpt written by "
-                f"`python -m src.train model={self.name}`) or weights=official:<name>"
-            )
+            cfg.checkpoint = str(shipped_checkpoint(self.name, self.network_target))
+            self.shipped = Path(cfg.checkpoint).stem
+            log.info("%s: no checkpoint given, using the shipped %s", self.name, cfg.checkpoint)
         found = read_checkpoint_network(cfg.checkpoint)
         if found != self.network_target:
             raise CheckpointError(
@@ -174,6 +194,8 @@ class LearnedRegistrator(Registrator):
     def label(self) -> str:
         """Display name; ``(untrained)`` marks freshly initialised weights, ``(official:<name>)`` published ones."""
         base = get_method(self.name).display
+        if self.shipped:
+            return f"{base} (shipped: {self.shipped})"
         if self.config.fresh_weights:
             return f"{base} (untrained)"
         return f"{base} ({self.config.weights})" if self.config.weights else base
