@@ -57,6 +57,7 @@ from baselines.methods import display_name  # re-exported for benchmarks.speed, 
 from benchmarks.grid_plan import CONF_DIR, Cell, TestSet, build_test_set, plan
 from benchmarks.grid_report import report
 from benchmarks.grid_run import GridResult, run_grid
+from src.wandb_logging import log_grid
 
 __all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "main", "plan", "report", "run_grid"]
 
@@ -64,6 +65,7 @@ __all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "m
 def _run(cfg: DictConfig) -> None:
     result = run_grid(cfg)
     report(result, cfg)
+    log_grid(cfg, result.tidy)  # wandb.enabled=true: the tidy table as a wandb.Table (src/wandb_logging.py)
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="benchmark_grid")

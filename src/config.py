@@ -28,6 +28,10 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("euler_seq", euler_seq_for)
     if not OmegaConf.has_resolver("add"):
         OmegaConf.register_new_resolver("add", add_ints)
+    if not OmegaConf.has_resolver("wandb_group"):
+        from src.wandb_logging import run_group
+
+        OmegaConf.register_new_resolver("wandb_group", run_group)
 
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml deliberately share their names with the launcher

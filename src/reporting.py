@@ -12,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.distributed import global_rank
 from src.files import write_text_atomic
+from src.wandb_logging import log_card
 
 
 def save_resolved_config(cfg: DictConfig) -> None:
@@ -50,6 +51,7 @@ def report_test_metrics(
     context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
                "dataset": cfg.data.dataset, **extra}
     write_metrics(metrics, Path(cfg.output_dir), context)
+    log_card(trainer, {**context, "metrics": metrics})
     print(f"\nTest metrics ({cfg.task_name}, {cfg.data.dataset}, {cfg.sampling}, {cfg.partial}):\n{format_metrics(metrics)}")
 
 
