@@ -112,6 +112,10 @@ METHODS: tuple[Method, ...] = (
            paper="Fischler & Bolles, Random Sample Consensus, CACM 1981; features: Rusu, Blodow & Beetz, Fast Point "
                  "Feature Histograms (FPFH) for 3D Registration, ICRA 2009",
            code="https://github.com/isl-org/Open3D"),
+    Method("ransac_icp", "RANSAC (FPFH) + ICP", "classical", target="baselines.classical.ransac:RANSACICP",
+           default_grid=True,
+           paper="Fischler & Bolles, Random Sample Consensus, CACM 1981; refined by ICP (Besl & McKay, TPAMI 1992)",
+           code="https://github.com/isl-org/Open3D"),
     Method("point_to_plane_icp", "Point-to-plane ICP", "classical",
            target="baselines.classical.open3d_icp:PointToPlaneICP", aliases=("plane_icp",), default_grid=True,
            paper="Chen & Medioni, Object Modelling by Registration of Multiple Range Images, IVC 1992",

@@ -17,7 +17,7 @@ SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~14° in total
 LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total: for the global method
 
 #: method -> the PyPI package it needs (None: Open3D only, always installed)
-PACKAGES = {"ransac": None, "point_to_plane_icp": None, "gicp": None, "small_gicp": "small-gicp", "cpd": "pycpd",
+PACKAGES = {"ransac": None, "ransac_icp": None, "point_to_plane_icp": None, "gicp": None, "small_gicp": "small-gicp", "cpd": "pycpd",
             "filterreg": "probreg"}
 LOCAL = ["point_to_plane_icp", "gicp", "small_gicp", "cpd", "filterreg"]
 
@@ -43,11 +43,11 @@ def test_local_methods_recover_a_small_transform(method):
     assert rot < 3.0 and trans < 0.05  # independent samples of the surface
 
 
-@pytest.mark.parametrize("refine", [False, True])
-def test_ransac_recovers_a_large_transform_and_icp_refines_it(refine):
+@pytest.mark.parametrize("method, limit", [("ransac", 3.0), ("ransac_icp", 1.0)])
+def test_ransac_recovers_a_large_transform_and_icp_refines_it(method, limit):
     pair = make_pair(LARGE, 500, seed=0, noise=0.005)
-    rot, trans = _errors(get_registrator("ransac", refine_icp=refine).register(*pair), LARGE)
-    assert rot < (1.0 if refine else 3.0) and trans < 0.03
+    rot, trans = _errors(get_registrator(method).register(*pair), LARGE)
+    assert rot < limit and trans < 0.03
 
 
 def test_ransac_is_deterministic_with_a_seed():
