@@ -39,11 +39,12 @@ class NormalsConfig(RegistratorConfig):
 @dataclass
 class FPFHConfig(NormalsConfig):
     """Normals, then FPFH (Rusu 2009) over ``feature_radius`` (at most ``feature_max_nn`` neighbours), after an
-    optional voxel down-sampling (``voxel_size``; None: the clouds as given)."""
+    optional voxel down-sampling (``voxel_size``; None: the clouds as given); ``seed`` seeds Open3D's sampling."""
 
     voxel_size: float | None = None
     feature_radius: float = 0.25
     feature_max_nn: int = 100
+    seed: int | None = 0  # Open3D's random sampling (FGR's tuples, RANSAC's samples): None leaves it unseeded
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -61,3 +62,9 @@ class FPFHConfig(NormalsConfig):
             pcd, search_param(self.feature_radius, self.feature_max_nn)
         )
         return pcd, fpfh
+
+    def pair_features(self, src: np.ndarray, ref: np.ndarray) -> tuple:
+        """Open3D's sampler seeded with ``seed``, then :meth:`features` of both clouds: ``(src, ref)`` pairs."""
+        if self.seed is not None:
+            open3d().utility.random.seed(int(self.seed))
+        return self.features(src), self.features(ref)

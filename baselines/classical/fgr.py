@@ -56,7 +56,6 @@ class FGRConfig(FPFHConfig):
     tuple_scale: float = 0.95
     maximum_tuple_count: int = 1000
     use_absolute_scale: bool = False
-    seed: int | None = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -82,10 +81,7 @@ class FGR(Registrator):
         o3d = open3d()
         reg = o3d.pipelines.registration
         cfg: FGRConfig = self.config
-        if cfg.seed is not None:
-            o3d.utility.random.seed(int(cfg.seed))
-        src_pcd, src_fpfh = cfg.features(src)
-        ref_pcd, ref_fpfh = cfg.features(ref)
+        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = cfg.pair_features(src, ref)
         option = reg.FastGlobalRegistrationOption(
             division_factor=float(cfg.division_factor),
             use_absolute_scale=bool(cfg.use_absolute_scale),

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive
-from baselines.classical._optional import require
+from baselines.classical._optional import NeedsPackage
 from src.errors import ConfigError
 from src.geometry.numpy_rigid import rigid_transform
 
@@ -42,15 +42,12 @@ class FilterRegConfig(RegistratorConfig):
             raise ConfigError(f"FilterRegConfig.w must be in [0, 1), got {self.w!r}")
 
 
-class FilterReg(Registrator):
+class FilterReg(NeedsPackage, Registrator):
     """probreg's rigid point-to-point FilterReg (optional package ``probreg``)."""
 
     name = "filterreg"
+    module, package = "probreg", "probreg"
     config_cls = FilterRegConfig
-
-    def __init__(self, config: FilterRegConfig | None = None, **overrides) -> None:
-        super().__init__(config, **overrides)
-        require("probreg", "probreg", self.name)
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         from probreg import filterreg

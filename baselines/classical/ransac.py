@@ -40,7 +40,6 @@ class RANSACConfig(FPFHConfig):
     confidence: float = 0.999
     refine_icp: bool = False
     refine_distance: float = 0.05
-    seed: int | None = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -66,9 +65,7 @@ class RANSAC(Registrator):
         o3d = open3d()
         reg = o3d.pipelines.registration
         cfg: RANSACConfig = self.config
-        if cfg.seed is not None:
-            o3d.utility.random.seed(int(cfg.seed))
-        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = cfg.features(src), cfg.features(ref)
+        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = cfg.pair_features(src, ref)
         result = reg.registration_ransac_based_on_feature_matching(
             src_pcd, ref_pcd, src_fpfh, ref_fpfh, bool(cfg.mutual_filter), float(cfg.distance_threshold),
             reg.TransformationEstimationPointToPoint(False), int(cfg.ransac_n),

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive
-from baselines.classical._optional import require
+from baselines.classical._optional import NeedsPackage
 from src.errors import ConfigError
 
 REGISTRATION_TYPES = ("GICP", "VGICP")
@@ -47,15 +47,12 @@ class SmallGICPConfig(RegistratorConfig):
                               f"got {self.registration_type!r}")
 
 
-class SmallGICP(Registrator):
+class SmallGICP(NeedsPackage, Registrator):
     """small_gicp's GICP or VGICP from the identity (optional package ``small-gicp``)."""
 
     name = "small_gicp"
+    module, package = "small_gicp", "small-gicp"
     config_cls = SmallGICPConfig
-
-    def __init__(self, config: SmallGICPConfig | None = None, **overrides) -> None:
-        super().__init__(config, **overrides)
-        require("small_gicp", "small-gicp", self.name)
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         import small_gicp
