@@ -8,7 +8,8 @@ pybind11, ~10 min on 2 cores); it installs with the project's Open3D 0.20 and Nu
 probreg`` (or the ``probreg`` extra). Without it, constructing :class:`FilterReg` raises a ConfigError naming
 the install. ``sigma2 = None`` starts from probreg's data-driven variance and ``update_sigma2`` re-estimates it
 each step (down to ``min_sigma2``); ``w`` is the outlier weight; ``max_iterations`` / ``tolerance`` stop the
-EM. Where each default comes from (probreg's, then sweeps on training pairs): ``docs/methods/filterreg.md``.
+EM. Defaults: probreg's, but ``update_sigma2 = True`` (on 30 training pairs: 100 % under 5°, mean 0.59°; probreg's
+False: 53 %, 11.1°; ``docs/methods/filterreg.md``).
 """
 
 from __future__ import annotations
