@@ -57,6 +57,7 @@ from benchmarks.grid_plan import CONF_DIR, Cell, TestSet, build_test_set, plan
 from benchmarks.grid_report import report
 from benchmarks.grid_run import GridResult, run_grid
 from src.cli import hydra_command
+from src.wandb_logging import log_grid
 
 __all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "main", "plan", "report", "run_grid"]
 
@@ -64,6 +65,7 @@ __all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "m
 def _run(cfg: DictConfig) -> None:
     result = run_grid(cfg)
     report(result, cfg)
+    log_grid(cfg, result.tidy)  # wandb.enabled=true: the tidy table as a wandb.Table (src/wandb_logging.py)
 
 
 main = hydra_command(_run, CONF_DIR, "benchmark_grid")  # one `error: ...` line and exit 2 for bad input

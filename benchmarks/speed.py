@@ -14,8 +14,8 @@ another sampling of N points moved by a random rigid motion of the paper's range
 [0°, 45°], translation in ±0.5). The first ``warmup`` pairs are not timed; the table shows the
 **median** over the timed pairs (the CSV also has the quartiles).
 
-Methods. Classical methods (ICP, FGR, Symmetric ICP; Go-ICP only when named, as the paper leaves it
-out for its speed) always run on the CPU, in this process, with the threads their libraries use by
+Methods. Classical methods (the grid's default list of :mod:`baselines.methods`; Go-ICP only when named, as the
+paper leaves it out for its speed) always run on the CPU, in this process, with the threads their libraries use by
 default. Learned networks run one pair per forward pass (batch 1) on each device of ``--devices``
 (default: the CPU, and the GPU when CUDA is available), with the weights of ``--checkpoint
 name=PATH`` or, without one, **freshly initialised weights** of the paper-sized network
@@ -62,26 +62,19 @@ import pandas as pd
 
 from baselines import get_registrator, resolve_registrator
 from baselines.base import Registrator
+from baselines.methods import default_grid_methods, display_name, paper_rank
 from src.errors import ConfigError, exit_code_of
 
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
-CLASSICAL_DEFAULT = ("icp", "fgr", "symmetric_icp")  # Go-ICP only when named (the paper omits it)
+#: Classical methods of the grid's default list left out of the default speed table unless named (the paper omits Go-ICP).
+SLOW_CLASSICAL = ("goicp",)
 PAPER_SPEED_CSV = "supp_speed_ms.csv"
-# the paper's column order (supplementary speed table)
-PAPER_ORDER = ("icp", "fgr", "goicp", "symmetric_icp", "pointnetlk", "dcp", "prnet", "fmr", "rpmnet", "idam",
-               "deepgmr", "omnet")
 
 
 def _learned() -> dict[str, str]:
     from baselines.learned.adapter import LEARNED_METHODS
 
     return LEARNED_METHODS
-
-
-def display_name(method: str) -> str:
-    from benchmarks.grid import display_name as grid_display_name
-
-    return grid_display_name(method)
 
 
 # --- inputs ------------------------------------------------------------------------------------------
@@ -266,12 +259,8 @@ def _fmt_ms(value: float) -> str:
 
 
 def _column_order(method: str) -> tuple:
-    """The paper's column order; other methods before OMNet (the last column, as in the paper)."""
-    if method == "omnet":
-        return (2, 0, method)
-    if method in PAPER_ORDER:
-        return (0, PAPER_ORDER.index(method), method)
-    return (1, 0, method)
+    """The paper's column order (the registry's ``speed``); other methods before OMNet (the last column, as in the paper)."""
+    return (*paper_rank(method, "speed"), method)
 
 
 def _fmt_paper(value: float) -> str:
@@ -393,7 +382,8 @@ def _parse_checkpoints(items: list[str]) -> dict[str, str]:
 
 
 def default_methods() -> list[str]:
-    return [*CLASSICAL_DEFAULT, *_learned()]
+    """The grid's default classical methods (but :data:`SLOW_CLASSICAL`), then the learned ones."""
+    return [*(m for m in default_grid_methods() if m not in SLOW_CLASSICAL), *_learned()]
 
 
 def build(method: str, device: str, checkpoints: dict[str, str], model_scale: float) -> tuple[Registrator, str]:

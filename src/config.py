@@ -45,6 +45,10 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("add", add_ints)
     if not OmegaConf.has_resolver("loader_workers"):
         OmegaConf.register_new_resolver("loader_workers", loader_workers)
+    if not OmegaConf.has_resolver("wandb_group"):
+        from src.wandb_logging import run_group
+
+        OmegaConf.register_new_resolver("wandb_group", run_group)
 
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml deliberately share their names with the launcher

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from src.distributed import global_rank
 from src.evaluated import describe_evaluated
 from src.files import write_atomic, write_text_atomic
+from src.wandb_logging import log_card
 
 
 def save_resolved_config(cfg: DictConfig) -> None:
@@ -52,6 +53,7 @@ def report_test_metrics(
     context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
                "dataset": cfg.data.dataset, **extra}
     write_metrics(metrics, Path(cfg.output_dir), context)
+    log_card(trainer, {**context, "metrics": metrics})
     tested = describe_evaluated(extra) if "test_pairs" in extra else f"{cfg.data.dataset} data"
     print(f"\nTest metrics ({cfg.task_name} protocol, {cfg.sampling}, {cfg.partial}; {tested}; Error(R) in degrees, "
           f"lower is better):\n{format_metrics(metrics)}\nwrote {Path(cfg.output_dir) / 'metrics.json'} and metrics.csv")

@@ -15,6 +15,7 @@ from src.files import remove_stale_temporaries
 from src.lightning_compat import patch_ddp_subprocess_launcher
 from src.quiet import quiet_lightning
 from src.signals import CheckpointOnSignal
+from src.wandb_logging import wandb_callbacks
 
 log = logging.getLogger(__name__)
 
@@ -40,5 +41,6 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
         if isinstance(callback, ModelCheckpoint) and callback.dirpath:
             for path in remove_stale_temporaries(Path(callback.dirpath)):
                 log.info("removed %s, a partial checkpoint left by a killed run", path)
+    callbacks += wandb_callbacks(cfg, loggers)  # the wandb tables and 3D objects (src/wandb_logging.py)
     patch_ddp_subprocess_launcher()
     return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks, plugins=[AtomicCheckpointIO()])

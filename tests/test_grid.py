@@ -54,7 +54,8 @@ def grid_cfg(out: Path, cache_root: Path, *overrides: str, data_overrides: tuple
 def test_default_grid_and_real_airplane_compose():
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose("benchmark_grid")
-        assert list(cfg.benchmark.methods) == ["icp", "fgr", "goicp", "symmetric_icp"]
+        assert list(cfg.benchmark.methods) == ["icp", "fgr", "goicp", "symmetric_icp", "ransac", "ransac_icp",
+                                               "point_to_plane_icp", "gicp", "small_gicp"]
         assert list(cfg.benchmark.experiments) == ["unseen_shapes", "unseen_categories", "gaussian_noise"]
         assert cfg.data.dataset == "synthetic" and cfg.output_dir == "outputs/grid/synthetic"
         real = compose("benchmark_grid", overrides=["+benchmark=real_airplane"])

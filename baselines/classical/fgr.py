@@ -40,51 +40,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, _positive
-from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, search_param, to_pcd
+from baselines.base import Registrator, _positive
+from baselines.classical._features import FPFHConfig
+from baselines.classical._open3d import open3d
 from src.errors import ConfigError
 
 
 @dataclass
-class FGRConfig(RegistratorConfig):
+class FGRConfig(FPFHConfig):
     """Settings of :class:`FGR` (see the module docstring for why these defaults)."""
 
-    voxel_size: float | None = None  # None: use the clouds as given (no down-sampling)
-    normal_radius: float = 0.1
-    normal_max_nn: int = 30
-    normal_orientation: str = "centroid"
-    feature_radius: float = 0.25
-    feature_max_nn: int = 100
     maximum_correspondence_distance: float = 0.025
     iteration_number: int = 64
     division_factor: float = 1.4
     tuple_scale: float = 0.95
     maximum_tuple_count: int = 1000
     use_absolute_scale: bool = False
-    seed: int | None = 0
 
     def __post_init__(self) -> None:
-        _positive(
-            self,
-            "normal_radius",
-            "normal_max_nn",
-            "feature_radius",
-            "feature_max_nn",
-            "maximum_correspondence_distance",
-            "iteration_number",
-            "maximum_tuple_count",
-        )
-        if self.voxel_size is not None:
-            _positive(self, "voxel_size")
+        super().__post_init__()
+        _positive(self, "maximum_correspondence_distance", "iteration_number", "maximum_tuple_count")
         if not 0.0 < self.tuple_scale < 1.0:
             raise ConfigError(f"FGRConfig.tuple_scale must be in (0, 1), got {self.tuple_scale!r}")
         if self.division_factor <= 1.0:
             raise ConfigError(f"FGRConfig.division_factor must be > 1, got {self.division_factor!r}")
-        if self.normal_orientation not in NORMAL_ORIENTATIONS:
-            raise ConfigError(
-                f"FGRConfig.normal_orientation must be one of {', '.join(NORMAL_ORIENTATIONS)}, "
-                f"got {self.normal_orientation!r}"
-            )
 
 
 class FGR(Registrator):
@@ -98,27 +77,11 @@ class FGR(Registrator):
     def setup(self) -> None:
         open3d()
 
-    def features(self, points: np.ndarray):
-        """(point cloud with normals, FPFH feature) for one cloud, as used by :meth:`register`."""
-        o3d = open3d()
-        cfg: FGRConfig = self.config
-        pcd = to_pcd(points)
-        if cfg.voxel_size is not None:
-            pcd = pcd.voxel_down_sample(float(cfg.voxel_size))
-        estimate_normals(pcd, cfg.normal_radius, cfg.normal_max_nn, cfg.normal_orientation)
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, search_param(cfg.feature_radius, cfg.feature_max_nn)
-        )
-        return pcd, fpfh
-
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         o3d = open3d()
         reg = o3d.pipelines.registration
         cfg: FGRConfig = self.config
-        if cfg.seed is not None:
-            o3d.utility.random.seed(int(cfg.seed))
-        src_pcd, src_fpfh = self.features(src)
-        ref_pcd, ref_fpfh = self.features(ref)
+        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = cfg.pair_features(src, ref)
         option = reg.FastGlobalRegistrationOption(
             division_factor=float(cfg.division_factor),
             use_absolute_scale=bool(cfg.use_absolute_scale),

@@ -49,6 +49,14 @@ class ICPConfig(RegistratorConfig):
         _positive(self, "max_correspondence_distance", "max_iterations")
         _positive(self, "relative_fitness", "relative_rmse", allow_zero=True)
 
+    def criteria(self):
+        """Open3D's ``ICPConvergenceCriteria`` of these settings."""
+        return open3d().pipelines.registration.ICPConvergenceCriteria(
+            relative_fitness=float(self.relative_fitness),
+            relative_rmse=float(self.relative_rmse),
+            max_iteration=int(self.max_iterations),
+        )
+
 
 class ICP(Registrator):
     """Open3D point-to-point ICP from the identity."""
@@ -71,10 +79,6 @@ class ICP(Registrator):
             float(cfg.max_correspondence_distance),
             np.eye(4),
             reg.TransformationEstimationPointToPoint(with_scaling=False),
-            reg.ICPConvergenceCriteria(
-                relative_fitness=float(cfg.relative_fitness),
-                relative_rmse=float(cfg.relative_rmse),
-                max_iteration=int(cfg.max_iterations),
-            ),
+            cfg.criteria(),
         )
         return np.asarray(result.transformation, dtype=np.float64)

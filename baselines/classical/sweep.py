@@ -1,33 +1,16 @@
-"""Accuracy and per-pair runtime of a classical baseline on the benchmark's real ModelNet40 airplane pairs.
+"""Accuracy and per-pair runtime of a classical baseline on real ModelNet40 airplane pairs, to tune its defaults.
 
-A small check used to choose and document the baselines' defaults, not the evaluation pipeline. Its
-pairs are the benchmark's: the first ``--pairs`` pairs of the fixed test set of ``+exp=real_airplane``
-(the carve-out of the last ``test_size`` = 100 airplane train ids, the official test split being withheld),
-built as the grid builds it (:func:`benchmarks.grid_plan.build_test_set`: the experiment composed with
-``sampling``, ``partial`` and ``data.pair.noise_sigma``, then :mod:`src.data`'s cache, splits and
-:func:`~src.data.transforms.build_pair_transforms`). Pair k of a sweep is therefore pair k of the grid's
-cell ``real_airplane/<sampling>/<partial>`` run with the same noise (``python -m benchmarks.grid
-+benchmark=real_airplane benchmark.partials=[rpmnet] 'benchmark.overrides=[data.pair.noise_sigma=0.01]'``)
-and of ``python -m src.eval +exp=real_airplane`` with those overrides.
-
-Defaults: the RPMNet manner (independent half-space crops keeping 70 %, the transform moves the source,
-717 points), twice-sampled (two disjoint subsets of each 10,000-point file), noise N(0, 0.01²) clipped
-to ±0.05. ``--os``: once-sampled; ``--clean``: no noise; ``--partial prnet``: the PRNet manner (the
-real-airplane grid's); ``--override KEY=VALUE``: any other override of the experiment (e.g.
-``data.pair.rot_mag=90``, or ``test_size=200`` for up to 200 pairs, on other shapes than the grid's).
-
-Prepare the data once, as for the grid::
-
-    python -m src.data.prepare modelnet40_resampled --source ../shared/data/modelnet40_normal_resampled_airplane.zip
-
-Usage::
+A small check used to choose and document the baselines' defaults, not the evaluation pipeline. ``--split train``
+(the default, the one to tune on): the first ``--pairs`` fixed pairs of the *training* stage of
+``+exp=real_airplane`` (the training shapes, never a validation or test shape; the datamodule refuses any
+overlap), as the datamodule draws them at epoch 0. ``--split test`` (**reporting only, never tuning**): the
+first pairs of its fixed test set, the grid's cell ``real_airplane/<sampling>/<partial>``. Pairs are built by
+:mod:`src.data` from the experiment composed with ``sampling``, ``partial``, ``data.pair.noise_sigma`` and
+``--override`` (e.g. ``data.pair.rot_mag=90``). Defaults: RPMNet manner, twice-sampled, noise σ = 0.01;
+``--os``, ``--clean``, ``--partial prnet``. Prepare the data as for the grid; tuning records: ``docs/methods/``
+(the older methods' docstrings quote earlier versions' pairs: a self-contained generator, then the test set).
 
     python -m baselines.classical.sweep icp --pairs 40 --set max_correspondence_distance=0.5
-    python -m baselines.classical.sweep goicp --pairs 12 --timeout 120 --workers 2
-
-The figures quoted in the classical methods' docstrings were measured by this command's earlier,
-self-contained pair generator: the same RPMNet-manner protocol (the reference moved instead of the
-source) on the last 20 airplane train ids read from the archive, i.e. other pairs than today's.
 """
 
 from __future__ import annotations
@@ -46,6 +29,8 @@ from src.errors import UserError
 
 EXPERIMENT = "real_airplane"
 NOISE_SIGMA = 0.01
+#: The experiment's stages the sweep may draw its pairs from: the training shapes (to tune on) or the test set.
+SPLITS = ("train", "test")
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -61,22 +46,35 @@ def _parse_set(items: list[str]) -> dict:
     return cfg
 
 
-def benchmark_pairs(count: int, sampling: str, partial: str, overrides: list[str]) -> tuple[str, list]:
-    """(the test set's key, its first ``count`` pairs ``(src, ref, transform_gt)``), as the grid builds them."""
-    from benchmarks.grid_plan import build_test_set  # hydra and the data stack: not in the worker processes
+def sweep_pairs(count: int, sampling: str, partial: str, overrides: list[str],
+                split: str = "train") -> tuple[str, list]:
+    """(the pair set's key, its first ``count`` pairs ``(src, ref, transform_gt)``): the fixed test set as the grid
+    builds it (``split="test"``), or the training stage's pairs at epoch 0 (``split="train"``)."""
+    import hydra  # hydra and the data stack: not in the worker processes
 
-    test_set = build_test_set(EXPERIMENT, sampling, partial, None, overrides)
-    available = len(test_set.dataset)
+    from benchmarks.grid_plan import TestSet, build_test_set, compose_experiment
+
+    if split == "test":
+        pair_set = build_test_set(EXPERIMENT, sampling, partial, None, overrides)
+    else:
+        cfg = compose_experiment([f"+exp={EXPERIMENT}", f"sampling={sampling}", f"partial={partial}", *overrides])
+        datamodule = hydra.utils.instantiate(cfg.data)
+        datamodule.setup("fit")  # refuses a training shape that is also a validation or test shape
+        pair_set = TestSet(EXPERIMENT, sampling, partial, cfg, datamodule.datasets["train"], {})
+    key = f"{pair_set.key} ({split})"
+    available = len(pair_set.dataset)
     if not 1 <= count <= available:
-        raise UserError(f"--pairs {count}: the {test_set.key} test set has {available} pairs "
-                        "(--override test_size=N carves out more shapes)")
-    return test_set.key, test_set.pairs(count)
+        raise UserError(f"--pairs {count}: {key} has {available} pairs"
+                        + (" (--override test_size=N carves out more shapes)" if split == "test" else ""))
+    return key, pair_set.pairs(count)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("method")
     parser.add_argument("--pairs", type=int, default=20)
+    parser.add_argument("--split", choices=SPLITS, default="train",
+                        help="train: the training shapes (tune here); test: the test set (report only, never tune)")
     parser.add_argument("--partial", choices=("rpmnet", "prnet"), default="rpmnet")
     parser.add_argument("--os", action="store_true", help="once-sampled instead of twice-sampled")
     parser.add_argument("--clean", action="store_true", help=f"no Gaussian noise (default: sigma {NOISE_SIGMA})")
@@ -88,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     noise = 0.0 if args.clean else NOISE_SIGMA
     try:
         registrator = get_registrator(args.method, **_parse_set(args.set))
-        key, pairs = benchmark_pairs(args.pairs, "os" if args.os else "ts", args.partial,
-                                     [f"data.pair.noise_sigma={noise}", *args.override])
+        key, pairs = sweep_pairs(args.pairs, "os" if args.os else "ts", args.partial,
+                                 [f"data.pair.noise_sigma={noise}", *args.override], args.split)
         start = time.perf_counter()
         results = run_pairs(registrator, [(src, ref) for src, ref, _ in pairs], workers=args.workers,
                             timeout_s=args.timeout, progress=False)
@@ -102,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     secs = np.array([r.seconds for r in results])
     failed = [(i, r) for i, r in enumerate(results) if r.failed]
     print(f"{registrator!r}")
+    if args.split == "test":
+        print("note: test-set pairs: for reporting only, never tune on them (--split train)")
     for i, r in failed[:5]:
         print(f"  pair {i}: {r.reason}")
     print(

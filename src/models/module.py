@@ -201,13 +201,14 @@ class RegistrationModule(L.LightningModule):
         self.log("train_loss", losses["loss"].detach(), prog_bar=True, logger=False)
         return losses["loss"]
 
-    def _evaluate(self, batch: dict[str, Tensor], metrics: RegistrationMetrics, prefix: str) -> None:
+    def _evaluate(self, batch: dict[str, Tensor], metrics: RegistrationMetrics, prefix: str) -> dict:
         outputs = self._run(batch)
         losses = self.network.loss(outputs, batch["transform_gt"])
         batch_size = batch["points_src"].shape[0]
         self.eval_losses[prefix].update(losses["loss"].detach(), weight=batch_size)
         self.log(f"{prefix}/loss", self.eval_losses[prefix], on_step=False, on_epoch=True, batch_size=batch_size)
         metrics.update(outputs["transforms"][-1].float(), batch["transform_gt"], batch["points_src"], batch["points_ref"])
+        return outputs
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         self._evaluate(batch, self.val_metrics, "val")
@@ -232,8 +233,9 @@ class RegistrationModule(L.LightningModule):
             raise ConfigError(f"model.scheduler plateau monitors {monitor!r}; validation logs {sorted(values)}")
         self.lr_schedulers().step(float(values[monitor]))
 
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._evaluate(batch, self.test_metrics, "test")
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict:
+        """The network's outputs on the batch (for callbacks: the wandb per-pair table)."""
+        return self._evaluate(batch, self.test_metrics, "test")
 
     def on_test_epoch_end(self) -> None:
         self.test_results = self.test_metrics.compute()

@@ -1,0 +1,120 @@
+"""The classical baselines of issue 25 (RANSAC, point-to-plane ICP, GICP, small_gicp, CPD, FilterReg): known
+transforms, the runner's per-pair timeout, bad input and bad options; an optional package missing → skipped."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from baselines import get_registrator, run_pairs, transform_problem
+from baselines.classical import _optional
+from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
+from src.errors import ConfigError, PointCloudError
+
+SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~14° in total: within a local method's basin
+LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total: for the global method
+
+#: method -> the PyPI package it needs (None: Open3D only, always installed)
+PACKAGES = {"ransac": None, "ransac_icp": None, "point_to_plane_icp": None, "gicp": None, "small_gicp": "small-gicp", "cpd": "pycpd",
+            "filterreg": "probreg"}
+LOCAL = ["point_to_plane_icp", "gicp", "small_gicp", "cpd", "filterreg"]
+
+
+def _needs(method: str) -> None:
+    package = PACKAGES[method]
+    if package and importlib.util.find_spec(package.replace("-", "_")) is None:
+        pytest.skip(f"optional package {package} not installed: pip install {package} (or {_optional.EXTRA})")
+
+
+def _errors(estimate, truth) -> tuple[float, float]:
+    assert transform_problem(estimate) is None, transform_problem(estimate)
+    return rotation_error_deg(estimate, truth), translation_error(estimate, truth)
+
+
+@pytest.mark.parametrize("method", LOCAL)
+def test_local_methods_recover_a_small_transform(method):
+    _needs(method)
+    reg = get_registrator(method)
+    rot, trans = _errors(reg.register(*make_pair(SMALL, 500, seed=1)), SMALL)
+    assert rot < 0.5 and trans < 0.01  # the same points: near exact
+    rot, trans = _errors(reg.register(*make_pair(SMALL, 500, seed=2, twice_sampled=True)), SMALL)
+    assert rot < 3.0 and trans < 0.05  # independent samples of the surface
+
+
+@pytest.mark.parametrize("method, limit", [("ransac", 3.0), ("ransac_icp", 1.0)])
+def test_ransac_recovers_a_large_transform_and_icp_refines_it(method, limit):
+    pair = make_pair(LARGE, 500, seed=0, noise=0.005)
+    rot, trans = _errors(get_registrator(method).register(*pair), LARGE)
+    assert rot < limit and trans < 0.03
+
+
+def test_ransac_is_deterministic_with_a_seed():
+    reg = get_registrator("ransac", seed=3)
+    pair = make_pair(LARGE, 300, seed=6, noise=0.01)
+    np.testing.assert_array_equal(reg.register(*pair), reg.register(*pair))
+
+
+def test_small_gicp_vgicp_recovers_a_small_transform():
+    _needs("small_gicp")
+    rot, trans = _errors(get_registrator("small_gicp", registration_type="VGICP").register(
+        *make_pair(SMALL, 500, seed=2, twice_sampled=True)), SMALL)
+    assert rot < 3.0 and trans < 0.05
+
+
+def test_cpd_keeps_the_scale_at_one():
+    """pycpd's RigidRegistration estimates a scale: on a source half the size, it would shrink the estimate."""
+    _needs("cpd")
+    src, ref = make_pair(SMALL, 300, seed=1)
+    estimate = get_registrator("cpd").register(0.5 * src, ref)
+    np.testing.assert_allclose(np.linalg.det(estimate[:3, :3]), 1.0, atol=1e-9)
+    np.testing.assert_allclose(estimate[:3, :3] @ estimate[:3, :3].T, np.eye(3), atol=1e-9)
+
+
+@pytest.mark.parametrize("method", sorted(PACKAGES))
+def test_every_new_method_runs_under_the_runner_with_a_timeout(method):
+    _needs(method)
+    pairs = [make_pair(SMALL, 300, seed=1)]
+    ok = run_pairs(get_registrator(method), pairs, workers=1, timeout_s=120, progress=False)[0]
+    assert not ok.failed, ok.reason
+    late = run_pairs(get_registrator(method), pairs, workers=1, timeout_s=1e-9, progress=False)[0]
+    assert late.failed and "timed out" in late.reason and np.array_equal(late.transform, np.eye(4))
+
+
+@pytest.mark.parametrize("method", sorted(PACKAGES))
+def test_bad_clouds_are_refused(method):
+    _needs(method)
+    reg = get_registrator(method)
+    with pytest.raises(PointCloudError, match="src: degenerate cloud"):
+        reg.register(np.ones((3, 3)), np.ones((3, 3)))
+    src, ref = make_pair(SMALL, 100, seed=1)
+    ref[5] = np.nan
+    with pytest.raises(PointCloudError, match="ref"):
+        reg.register(src, ref)
+    with pytest.raises(PointCloudError, match="src"):
+        reg.register(src[:, :2], ref)
+
+
+@pytest.mark.parametrize("method, options, message", [
+    ("ransac", {"ransac_n": 2}, "ransac_n must be >= 3"),
+    ("ransac", {"confidence": 1.5}, r"confidence must be in \(0, 1\]"),
+    ("ransac", {"feature_radius": 0}, "feature_radius must be > 0"),
+    ("point_to_plane_icp", {"normal_orientation": "up"}, "normal_orientation must be one of"),
+    ("gicp", {"epsilon": -1.0}, "epsilon must be > 0"),
+    ("small_gicp", {"registration_type": "NDT"}, "registration_type must be one of GICP, VGICP"),
+    ("cpd", {"w": 1.0}, r"w must be in \[0, 1\)"),
+    ("filterreg", {"max_iterations": 0}, "max_iterations must be > 0"),
+    ("gicp", {"colour": 1}, "unknown option"),
+])
+def test_bad_options_are_one_config_error(method, options, message):
+    _needs(method)
+    with pytest.raises(ConfigError, match=message):
+        get_registrator(method, **options)
+
+
+@pytest.mark.parametrize("method", ["small_gicp", "cpd", "filterreg"])
+def test_a_missing_optional_package_names_its_install(method, monkeypatch):
+    monkeypatch.setattr(_optional.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ConfigError, match=f"needs the optional package {PACKAGES[method]}.*pip install"):
+        get_registrator(method)
