@@ -156,9 +156,9 @@ RULES: dict[str, Rule] = {
     "trainer.check_val_every_n_epoch": integer(1, nullable=True),
     "trainer.log_every_n_steps": integer(1),
     "trainer.accumulate_grad_batches": integer(1),
-    "trainer.limit_train_batches": POSITIVE,
-    "trainer.limit_val_batches": NON_NEGATIVE,
-    "trainer.limit_test_batches": POSITIVE,
+    "trainer.limit_train_batches": number(0.0, low_open=True, nullable=True),  # null: every batch (Lightning's default)
+    "trainer.limit_val_batches": number(0.0, nullable=True),
+    "trainer.limit_test_batches": number(0.0, low_open=True, nullable=True),
     "trainer.gradient_clip_val": number(0.0, nullable=True),
     "trainer.num_sanity_val_steps": integer(-1),
     **{f"callbacks.periodic_checkpoint.train_time_interval.{unit}": POSITIVE for unit in ("seconds", "minutes", "hours")},
