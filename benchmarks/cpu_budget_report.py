@@ -38,6 +38,17 @@ def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
     return plan, curve.assign(method=method_dir.name)
 
 
+def _steps_trained(run_dir: Path, logs: pd.DataFrame) -> int:
+    """Optimiser steps of a stage: the trainer's count in its test ``metrics.json``, else (still running) from the
+    last training-time row of its logs."""
+    path = run_dir / "metrics.json"
+    if path.is_file() and "global_step" in json.loads(path.read_text()):
+        return int(json.loads(path.read_text())["global_step"])
+    if logs.empty or "time/cpu_hours" not in logs:
+        return 0
+    return int(logs.dropna(subset=["time/cpu_hours"])["step"].max()) + 1
+
+
 def _test_metrics(run_dir: Path) -> dict[str, float]:
     path = run_dir / "metrics.json"
     return json.loads(path.read_text())["metrics"] if path.is_file() else {}
@@ -48,7 +59,7 @@ def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
     stages = [Stage(**s) for s in plan["stages"]]
     last = stages[-1]
     logs = [read_csv_logs(method_dir / s.name) for s in stages]
-    steps = [int(frame["step"].max()) + 1 if not frame.empty else 0 for frame in logs]
+    steps = [_steps_trained(method_dir / s.name, frame) for s, frame in zip(stages, logs)]
     row = {"method": method_dir.name, "width": plan["width"], "batch": last.batch, "steps": steps[-1],
            "planned steps": last.max_steps, "pairs seen": steps[-1] * last.batch,
            "CPU h": sum(_stage_cpu_hours(frame) for frame in logs if not frame.empty)}
