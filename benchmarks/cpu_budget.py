@@ -55,17 +55,9 @@ PROTOCOL = [
 
 def compose_recipe(model: str) -> Any:
     """The model's training recipe as ``src.train`` composes it (``model=<model>`` plus its recipe)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
+    from baselines.learned.adapter import compose_conf
 
-    from src.config import register_resolvers
-    from src.paths import REPO_ROOT
-
-    register_resolvers()
-    overrides = [f"model={model}"] + ([f"recipe={RECIPE_OF[model]}"] if model in RECIPE_OF else [])
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=overrides)
+    return compose_conf([f"model={model}"] + ([f"recipe={RECIPE_OF[model]}"] if model in RECIPE_OF else []))
 
 
 def budget_schedule(cfg: Any) -> list[str]:

@@ -92,19 +92,23 @@ class LearnedConfig(RegistratorConfig):
         self.model_overrides = tuple(str(o) for o in (self.model_overrides or ()))
 
 
-def compose_model_config(model: str, model_scale: float, overrides: Sequence[str] = ()) -> Any:
-    """The ``model`` group of ``conf/`` for ``conf/model/<model>.yaml`` (a RegistrationModule config)."""
+def compose_conf(overrides: Sequence[str]) -> Any:
+    """``conf/config.yaml`` composed with ``overrides`` (in Hydra's running context if there is one)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     from src.config import register_resolvers
 
     register_resolvers()
-    overrides = [f"model={model}", f"model_scale={model_scale}", *overrides]
     if GlobalHydra.instance().is_initialized():
-        return compose("config", overrides=overrides).model
+        return compose("config", overrides=list(overrides))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=overrides).model
+        return compose("config", overrides=list(overrides))
+
+
+def compose_model_config(model: str, model_scale: float, overrides: Sequence[str] = ()) -> Any:
+    """The ``model`` group of ``conf/`` for ``conf/model/<model>.yaml`` (a RegistrationModule config)."""
+    return compose_conf([f"model={model}", f"model_scale={model_scale}", *overrides]).model
 
 
 def read_checkpoint_network(path: str | Path) -> str:
