@@ -9,7 +9,12 @@ official code's, ``recipe=omnet_official``) with the schedule mapped onto the st
 inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its ``last.ckpt``.
 
     python -m benchmarks.cpu_budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2]
-    python -m benchmarks.cpu_budget report --root RUNS --out benchmarks/results
+    python -m benchmarks.cpu_budget archive --root RUNS --out benchmarks/results/cpu_budget_runs
+    python -m benchmarks.cpu_budget report --root benchmarks/results/cpu_budget_runs --out benchmarks/results
+
+``archive`` copies each run's record (plan, commands, CSV logs, test metrics: kilobytes, no checkpoint)
+into the repository, so that the report is made from committed files: run folders need not outlive
+the machine they ran on.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import json
 import math
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import threading
@@ -230,6 +236,37 @@ def run_method(method: str, root: Path, budget_h: float) -> str:
     return f"{method}: done"
 
 
+#: A stage's record: what ran (command, plan), its logs and its test metrics; checkpoints stay in the run folder.
+RECORD_FILES = ("command.txt", "done.json", "metrics.json")
+
+
+def archive_runs(root: Path, out: Path) -> list[str]:
+    """Copy the record of every method under ``root`` into ``out`` (replacing that method's older copy)."""
+    archived = []
+    for method in METHODS:
+        plan = root / method / "plan.json"
+        if not plan.is_file():
+            continue
+        target = out / method
+        if target.exists():
+            shutil.rmtree(target)
+        target.mkdir(parents=True)
+        shutil.copy2(plan, target / "plan.json")
+        for stage in json.loads(plan.read_text())["stages"]:
+            run_dir, copy_dir = root / method / stage["name"], target / stage["name"]
+            for log in run_dir.glob("csv/version_*/metrics.csv"):
+                (copy_dir / log.parent.relative_to(run_dir)).mkdir(parents=True, exist_ok=True)
+                shutil.copy2(log, copy_dir / log.relative_to(run_dir))
+            for name in RECORD_FILES:
+                if (run_dir / name).is_file():
+                    copy_dir.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(run_dir / name, copy_dir / name)
+        archived.append(method)
+    if not archived:
+        raise ConfigError(f"no method run under {root}: nothing to archive")
+    return archived
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.cpu_budget", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -238,6 +275,9 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated, of: {', '.join(METHODS)}")
     run.add_argument("--budget-h", type=float, default=1.0, help="CPU hours per method, one thread (default 1)")
     run.add_argument("--parallel", type=int, default=2, help="methods trained at once, one thread each (default 2)")
+    arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
+    arc.add_argument("--root", type=Path, required=True)
+    arc.add_argument("--out", type=Path, default=Path("benchmarks/results/cpu_budget_runs"))
     rep = sub.add_parser("report", help="curves, table and plot")
     rep.add_argument("--root", type=Path, required=True)
     rep.add_argument("--out", type=Path, default=Path("benchmarks/results"))
@@ -249,6 +289,9 @@ def main(argv: list[str] | None = None) -> int:
 
             for path in report(args.root, args.out):
                 print(f"wrote {path}")
+            return
+        if args.command == "archive":
+            print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
             return
         run_each(args.methods, METHODS, "methods", ("--budget-h", args.budget_h), args.parallel,
                  lambda n: run_method(n, args.root, args.budget_h))

@@ -228,14 +228,17 @@ def run_entry(run: Run) -> Entry:
 
 
 def shipped_card(run: Run, directory: Path) -> tuple[Path, dict[str, Any]] | None:
-    """The shipped checkpoint for the run's experiment (:func:`find_shipped`), else the card with the
-    most of (dataset, sampling, partial) in common; None when no card has its ``.ckpt``."""
+    """The shipped checkpoint for the run's experiment and network (:func:`find_shipped`), else the card (of
+    the run's network, if one is shipped) with the most of (dataset, sampling, partial) in common; None when
+    no card has its ``.ckpt``."""
     from src.models.pretrained import find_shipped
 
     cards = {p.with_suffix(".ckpt"): json.loads(p.read_text()) for p in sorted(directory.glob("*.json"))}
     cards = {path: card for path, card in cards.items() if path.is_file()}
+    network = run.cfg.model.network._target_
+    cards = {path: card for path, card in cards.items() if card["network"]["_target_"] == network} or cards
     try:
-        path = find_shipped(run.identity, directory)
+        path = find_shipped(run.identity, directory, network=network)
     except CheckpointError:
         path = None
     if path not in cards and cards:

@@ -41,11 +41,11 @@ def load_checkpoint(path: str, cfg: DictConfig) -> RegistrationModule:
 
 
 def resolve_checkpoint(cfg: DictConfig) -> str:
-    """``ckpt_path``, or else the shipped checkpoint trained for this experiment."""
+    """``ckpt_path``, or else the shipped checkpoint trained for this experiment and network."""
     if cfg.ckpt_path:
         return str(cfg.ckpt_path)
     identity = {"task": cfg.task_name, "dataset": cfg.data.dataset, "sampling": cfg.sampling, "partial": cfg.partial}
-    path = find_shipped(identity)
+    path = find_shipped(identity, network=cfg.model.network._target_)
     log.info("no ckpt_path given: evaluating the shipped checkpoint %s (see %s)", path, path.with_suffix(".json").name)
     return str(path)
 

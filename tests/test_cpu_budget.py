@@ -143,6 +143,15 @@ def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp
     assert table.loc["pointnetlk", "steps"] == "5 + 20" and table.loc["pointnetlk", "CPU h"] == pytest.approx(0.75)
     assert not table.loc["pointnetlk", "done"] and pd.isna(table.loc["pointnetlk", "test Error(R)"])
     assert all(p.is_file() and p.stat().st_size > 0 for p in report(tmp_path, tmp_path / "out"))
+    (tmp_path / "dcp" / "dcp" / "checkpoints").mkdir()
+    (tmp_path / "dcp" / "dcp" / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+    (tmp_path / "dcp" / "dcp" / "command.txt").write_text("-m src.train model=dcp\n")
+    archive = tmp_path / "archive"
+    assert cpu_budget.archive_runs(tmp_path, archive) == ["dcp", "pointnetlk"]
+    assert not list(archive.rglob("*.ckpt")) and (archive / "dcp" / "dcp" / "command.txt").is_file()
+    archived_curves, archived_table = collect(archive)  # the report from the committed copy: the same numbers
+    pd.testing.assert_frame_equal(archived_curves, curves)
+    pd.testing.assert_frame_equal(archived_table, table.reset_index())
 
 
 def test_the_probe_times_a_step_in_a_child_and_reports_one_that_does_not_fit_as_infinite(monkeypatch):

@@ -63,6 +63,10 @@ def test_find_shipped_matches_the_experiment(run_dir, tmp_path):
     with pytest.raises(CheckpointError, match="no shipped checkpoint for task=unseen_shapes dataset=modelnet40 .*"
                        "shipped: task=unseen_shapes dataset=synthetic sampling=ts partial=prnet.*ckpt_path"):
         find_shipped(IDENTITY | {"dataset": "modelnet40"}, tmp_path)
+    target = card["network"]["_target_"]
+    assert find_shipped(IDENTITY, tmp_path, network=target) == tmp_path / "tiny.ckpt"
+    with pytest.raises(CheckpointError, match=r"network=baselines.learned.dcp.DCP \(shipped: .* network=" + target):
+        find_shipped(IDENTITY, tmp_path, network="baselines.learned.dcp.DCP")  # the same experiment, another network
 
 
 def test_eval_without_ckpt_path_uses_the_shipped_checkpoint(tmp_path):

@@ -7,7 +7,7 @@ writes ``checkpoints/<name>.ckpt`` (weights and the network config only: no opti
 loads with ``RegistrationModule.load_from_checkpoint``) and ``checkpoints/<name>.json`` (what it is,
 how it was trained, its test metrics and any further evaluations). ``python -m src.eval`` without
 ``ckpt_path`` uses the shipped checkpoint whose experiment (task, dataset, sampling, partial manner)
-matches the config.
+and network match the config.
 """
 
 from __future__ import annotations
@@ -29,16 +29,20 @@ SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
 
 
-def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR) -> Path:
-    """The shipped checkpoint trained for ``identity`` (task, dataset, sampling, partial)."""
+def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR, network: str | None = None) -> Path:
+    """The shipped checkpoint trained for ``identity`` (task, dataset, sampling, partial) and, when given, for
+    the ``network`` (its ``_target_``): each learned method ships its own checkpoint for the same experiment."""
     cards = {path: json.loads(path.read_text()) for path in sorted(directory.glob("*.json"))}
+
+    def describe(card_identity: dict[str, str], target: str | None) -> str:
+        return " ".join(f"{k}={card_identity[k]}" for k in IDENTITY_KEYS) + (f" network={target}" if target else "")
+
     for path, card in cards.items():
-        if all(card["experiment"][k] == identity[k] for k in IDENTITY_KEYS):
+        if all(card["experiment"][k] == identity[k] for k in IDENTITY_KEYS) and network in (None, card["network"]["_target_"]):
             return path.with_suffix(".ckpt")
-    available = [" ".join(f"{k}={card['experiment'][k]}" for k in IDENTITY_KEYS) for card in cards.values()]
-    wanted = " ".join(f"{k}={identity[k]}" for k in IDENTITY_KEYS)
+    available = [describe(card["experiment"], card["network"]["_target_"] if network else None) for card in cards.values()]
     raise CheckpointError(
-        f"no shipped checkpoint for {wanted} (shipped: {'; '.join(available) or 'none'}): "
+        f"no shipped checkpoint for {describe(identity, network)} (shipped: {'; '.join(available) or 'none'}): "
         "train one with `python -m src.train` and pass ckpt_path=PATH"
     )
 
