@@ -8,7 +8,7 @@ official code's, ``recipe=omnet_official``) with the schedule mapped onto the st
 (:func:`plan_method`, from a probe of the step's CPU time). PointNetLK's classifier stage trains first,
 inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its ``last.ckpt``.
 
-    python -m benchmarks.cpu_budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2]
+    python -m benchmarks.cpu_budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2] [--archive DIR]
     python -m benchmarks.cpu_budget archive --root RUNS --out benchmarks/results/cpu_budget_runs
     python -m benchmarks.cpu_budget report --root benchmarks/results/cpu_budget_runs --out benchmarks/results
 
@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from collections.abc import Sequence
 
 from benchmarks.cpu_recipes import CPU_TRAINING_ENV, code_version, run_each, train_logged
 from src.errors import ConfigError, exit_code_of
@@ -240,10 +241,10 @@ def run_method(method: str, root: Path, budget_h: float) -> str:
 RECORD_FILES = ("command.txt", "done.json", "metrics.json")
 
 
-def archive_runs(root: Path, out: Path) -> list[str]:
-    """Copy the record of every method under ``root`` into ``out`` (replacing that method's older copy)."""
+def archive_runs(root: Path, out: Path, methods: Sequence[str] = METHODS) -> list[str]:
+    """Copy the record of each of ``methods`` run under ``root`` into ``out`` (replacing its older copy)."""
     archived = []
-    for method in METHODS:
+    for method in methods:
         plan = root / method / "plan.json"
         if not plan.is_file():
             continue
@@ -275,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated, of: {', '.join(METHODS)}")
     run.add_argument("--budget-h", type=float, default=1.0, help="CPU hours per method, one thread (default 1)")
     run.add_argument("--parallel", type=int, default=2, help="methods trained at once, one thread each (default 2)")
+    run.add_argument("--archive", type=Path, default=None,
+                     help="archive each method's record here when its run returns (e.g. benchmarks/results/cpu_budget_runs)")
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/results/cpu_budget_runs"))
@@ -293,8 +296,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "archive":
             print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
             return
-        run_each(args.methods, METHODS, "methods", ("--budget-h", args.budget_h), args.parallel,
-                 lambda n: run_method(n, args.root, args.budget_h))
+        def run_one(method: str) -> str:
+            status = run_method(method, args.root, args.budget_h)
+            if args.archive is not None:
+                archive_runs(args.root, args.archive, [method])
+            return status
+
+        run_each(args.methods, METHODS, "methods", ("--budget-h", args.budget_h), args.parallel, run_one)
 
     return exit_code_of(action)
 

@@ -160,3 +160,14 @@ def test_the_probe_times_a_step_in_a_child_and_reports_one_that_does_not_fit_as_
     assert 0 < cpu_budget.probe_step_seconds("pointnetlk_revisited", 0.0625, 4) < math.inf
     monkeypatch.setattr(cpu_budget, "PROBE_MEMORY_BYTES", 256 * 2**20)  # not even torch fits
     assert cpu_budget.probe_step_seconds("pointnetlk_revisited", 0.0625, 4) == math.inf
+
+
+def test_run_archives_each_method_when_it_returns(tmp_path, monkeypatch):
+    def fake_run(method, root, budget_h):
+        (root / method).mkdir(parents=True)
+        (root / method / "plan.json").write_text(json.dumps({"stages": [{"name": method}]}))
+        return f"{method}: done"
+
+    monkeypatch.setattr(cpu_budget, "run_method", fake_run)
+    assert cpu_budget.main(["run", "--root", str(tmp_path / "runs"), "--methods", "dcp,fmr", "--archive", str(tmp_path / "a")]) == 0
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["dcp", "fmr"] and (tmp_path / "a" / "fmr" / "plan.json").is_file()
