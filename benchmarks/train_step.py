@@ -26,6 +26,7 @@ import argparse
 import itertools
 import statistics
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -58,14 +59,10 @@ def build_network(model: str, model_scale: float, overrides: list[str]) -> torch
     return hydra.utils.instantiate(compose_model_config(model, model_scale, overrides).network)
 
 
-def time_steps(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str, steps: int,
-               warmup: int, reference: MatmulReference | None = None, clock: str = "wall") -> tuple[list[float], int, list[float]]:
-    """Milliseconds of each timed training step; with a ``reference``, also the matrix-product FLOPs of a step
-    (counted in an extra step after the warm-up) and the reference product's GFLOP/s after each timed step."""
+def training_step(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str) -> Callable[[], torch.Tensor]:
+    """One training step (forward, loss, backward, Adam) of ``network`` on ``batch``, returning the loss."""
     device = batch["points_src"].device
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    now = CLOCKS[clock]
 
     def step() -> torch.Tensor:
         optimizer.zero_grad(set_to_none=True)
@@ -76,6 +73,29 @@ def time_steps(network: torch.nn.Module, batch: dict[str, torch.Tensor], precisi
         optimizer.step()
         return loss
 
+    return step
+
+
+def profile_step(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str, rows: int) -> str:
+    """``torch.profiler``'s table of the ``rows`` operators with the most self CPU time in one training step
+    (after one unprofiled step)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    step = training_step(network, batch, precision)
+    step()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        step()
+    return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
+
+
+def time_steps(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str, steps: int,
+               warmup: int, reference: MatmulReference | None = None, clock: str = "wall") -> tuple[list[float], int, list[float]]:
+    """Milliseconds of each timed training step; with a ``reference``, also the matrix-product FLOPs of a step
+    (counted in an extra step after the warm-up) and the reference product's GFLOP/s after each timed step."""
+    device = batch["points_src"].device
+    step = training_step(network, batch, precision)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    now = CLOCKS[clock]
     times, flops, mm_rates = [], 0, []
     for k in range(warmup + steps):
         if k == warmup and reference is not None:
@@ -141,6 +161,11 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
                      "parameters": sum(p.numel() for p in network.parameters()), "note": note})
         print(f"{points} points, {precision}, compile={compile_mode}: {median:.1f} ms/step "
               f"{rows[-1]['gflop_per_s']:.1f} GFLOP/s ({rows[-1]['pct_of_mm']:.0f} % of mm) {note}", flush=True)
+        if args.profile and not note:
+            table = profile_step(step_network, batch, precision, args.profile)
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            (Path(args.out) / f"profile_{points}_{precision}_{compile_mode}.txt").write_text(table)
+            print(table, flush=True)
         del network, step_network, batch
         if device.type == "cuda":
             torch.cuda.empty_cache()
@@ -197,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clock", default="wall", choices=tuple(CLOCKS),
                         help="wall clock, or the process's CPU time (CPU only: waiting for a busy core not counted)")
     parser.add_argument("--out", default="outputs/train_step", help="output folder")
+    parser.add_argument("--profile", type=int, default=0, metavar="ROWS",
+                        help="also profile one step: the ROWS operators with the most CPU time (profile_*.txt in --out)")
     args = parser.parse_args(argv)
     return exit_code_of(lambda: run(args))
 

@@ -47,3 +47,10 @@ def test_a_failing_configuration_is_recorded_not_fatal(tmp_path, monkeypatch):
     frame = pd.read_csv(tmp_path / "train_step.csv").set_index("precision")
     assert frame.loc["fp32", "ms_per_step"] > 0 and pd.isna(frame.loc["bf16", "ms_per_step"])
     assert "| 48 | bf16 | none | failed: FloatingPointError: non-finite loss" in (tmp_path / "train_step.md").read_text()
+
+
+def test_profile_writes_the_operators_with_the_most_cpu_time(tmp_path):
+    assert main(["--device", "cpu", "--batch", "2", "--points", "48", "--model-scale", "0.0625", "--steps", "1",
+                 "--warmup", "0", "--precisions", "fp32", "--compile", "none", "--profile", "5", "--out", str(tmp_path)]) == 0
+    table = (tmp_path / "profile_48_fp32_none.txt").read_text()
+    assert "Self CPU" in table and "aten::" in table
