@@ -247,7 +247,7 @@ def _chosen_pairs(args: argparse.Namespace, test_set) -> dict[int, str]:
 
 def run(args: argparse.Namespace) -> list[str]:
     """Draw the chosen pairs into ``args.out``; the panel titles."""
-    from benchmarks.grid import build_test_set
+    from src.pair_sets import build_test_set
 
     view = tuple(float(v) for v in args.view.split(","))
     if len(view) != 2:

@@ -53,13 +53,14 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from baselines.methods import display_name  # re-exported for benchmarks.speed, until it imports baselines.methods
-from benchmarks.grid_plan import CONF_DIR, Cell, TestSet, build_test_set, plan
+from benchmarks.grid_plan import Cell, plan
 from benchmarks.grid_report import report
 from benchmarks.grid_run import GridResult, run_grid
 from src.cli import hydra_command
+from src.paths import CONF_DIR
 from src.wandb_logging import log_grid
 
-__all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "main", "plan", "report", "run_grid"]
+__all__ = ["Cell", "GridResult", "display_name", "main", "plan", "report", "run_grid"]
 
 
 def _run(cfg: DictConfig) -> None:

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from baselines.methods import learned_methods
+from src.compose import compose_model_config
 from src.data.cache import file_sha256
 from src.errors import CheckpointError, ConfigError
 from src.paths import shared_path
@@ -315,8 +316,6 @@ def network_config(entry: Published) -> dict[str, Any]:
     """The network config (``_target_`` + arguments) the entry's weights fit (full width)."""
     from omegaconf import OmegaConf
 
-    from baselines.learned.adapter import compose_model_config
-
     if entry.model is None:
         raise CheckpointError(
             f"{OFFICIAL}{entry.name} holds PointNet features, not a registration network: use it as "
@@ -353,8 +352,6 @@ def published_module(spec: str, model_cfg: Mapping[str, Any] | None = None, expe
             f"'{resolved.entry.method}'"
         )
     if model_cfg is None:
-        from baselines.learned.adapter import compose_model_config
-
         model_cfg = compose_model_config(resolved.entry.model, 1.0, resolved.entry.model_overrides)
     plain = OmegaConf.to_container(model_cfg, resolve=True) if not isinstance(model_cfg, dict) else dict(model_cfg)
     module = hydra.utils.instantiate({**plain, "network": network})
