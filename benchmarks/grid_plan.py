@@ -159,7 +159,7 @@ class MethodFactory:
         for key in ("device", "batch_size"):  # same results, different speed
             config.pop(key, None)
         if config.get("weights"):
-            from baselines.learned.published import weights_sha256
+            from baselines.learned.published import weights_sha256  # torch: not in the grid's worker start-up
 
             config["weights_sha256"] = weights_sha256(config["weights"])
         checkpoint = config.get("checkpoint")

@@ -168,7 +168,7 @@ class LearnedRegistrator(Registrator):
 
     def _check_weights(self, spec: str) -> None:
         """Published weights must exist, be intact and fit this method's network (CheckpointError)."""
-        from baselines.learned.published import network_config, resolve
+        from baselines.learned.published import network_config, resolve  # torch: kept out of `import baselines`
 
         target = network_config(resolve(spec).entry)["_target_"]
         if target != self.network_target:
@@ -218,7 +218,7 @@ class LearnedRegistrator(Registrator):
         if self.config.fresh_weights:
             module = self._build_fresh()
         elif self.config.weights:
-            from baselines.learned.published import published_module
+            from baselines.learned.published import published_module  # torch: kept out of `import baselines`
 
             module = published_module(self.config.weights, expected_target=self.network_target)
         else:

@@ -57,6 +57,7 @@ from baselines.learned.common.global_feature import (
     lk_register,
     register_lk_delta,
 )
+from baselines.learned.published import pointnet_features
 
 from src.geometry import se3_inverse
 from src.models.base import MIN_CHANNELS, scaled
@@ -99,8 +100,6 @@ class PointNetLK(nn.Module):
     def train(self, mode: bool = True) -> PointNetLK:
         """Also applies ``feature_init`` the first time training starts on fresh weights."""
         if mode and self.feature_init and not self._weights_loaded:
-            from baselines.learned.published import pointnet_features
-
             self.encoder.load_state_dict(pointnet_features(self.feature_init, self.encoder))
             self._weights_loaded = True
         return super().train(mode)
