@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from baselines.base import WORKING_RADIUS, Similarity, get_registrator, pair_radius
+from baselines.conditioning import WORKING_RADIUS, Similarity, pair_radius
 from baselines.methods import display_name
+from baselines.registry import get_registrator
 from baselines.result import FIT_THRESHOLD, inlier_fit
 from src.data.point_files import read_points, write_ply
 from src.data.scans import shared_similarity

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from baselines.base import get_registrator
+from baselines.registry import get_registrator
 from baselines.runner import run_pairs
 from baselines.testing import rotation_error_deg, translation_error
 from src.errors import UserError
