@@ -9,19 +9,12 @@
 The methods and their facts: :mod:`baselines.methods`.
 """
 
-from baselines.base import (
-    Registrator,
-    RegistratorConfig,
-    available_registrators,
-    check_batch,
-    check_cloud,
-    get_registrator,
-    register_registrator,
-    resolve_registrator,
-)
+from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import METHODS, Method
+from baselines.registry import available_registrators, get_registrator, register_registrator, resolve_registrator
 from baselines.result import RegistrationResult, transform_problem
 from baselines.runner import run_pairs
+from src.geometry.clouds import check_batch, check_cloud
 
 __all__ = [
     "METHODS", "Method", "RegistrationResult", "Registrator", "RegistratorConfig", "available_registrators",

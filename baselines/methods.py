@@ -3,7 +3,7 @@
 A :class:`Method` holds a method's facts: its key (``get_registrator(key)``, ``conf/model/<key>.yaml``
 for a learned one), display name, kind, what registers (a classical method's lazy ``"module:Class"``,
 a learned method's network ``_target_``), its place in the paper's tables, its citation and aliases.
-Derived from :data:`METHODS`: the registry of :mod:`baselines.base`, the learned adapters of
+Derived from :data:`METHODS`: the registry of :mod:`baselines.registry`, the learned adapters of
 :mod:`baselines.learned.adapter`, the display names and the row order of :mod:`benchmarks.tables`,
 the matching with the paper's tables (:func:`benchmarks.paper.method_key`), and the grid's default
 method list and ``method_options`` (:mod:`benchmarks.grid_plan`). Published weights name their

@@ -33,9 +33,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from baselines.base import WORKING_RADIUS, Similarity, get_registrator, pair_radius
+from baselines.conditioning import WORKING_RADIUS, Similarity, pair_radius
 from baselines.methods import display_name
+from baselines.registry import get_registrator
 from baselines.result import FIT_THRESHOLD, inlier_fit
+from src.cloud_panels import REFERENCE, SOURCE, centre, half_size, panel
 from src.data.point_files import read_points, write_ply
 from src.data.scans import shared_similarity
 from src.errors import ConfigError, UserError
@@ -113,15 +115,13 @@ def draw(path: Path, clouds: dict[str, np.ndarray], title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from benchmarks.figures import REFERENCE, SOURCE, _centre, _half_size, _panel
-
     rng = np.random.default_rng(0)
     src, ref, aligned = (_subset(clouds[k], PICTURE_POINTS, rng) for k in ("src", "ref", "aligned"))
     fig = plt.figure(figsize=(7, 3.6))
     for slot, (moving, name) in enumerate(((src, "before"), (aligned, "after")), start=1):
         both = np.concatenate([moving, ref])
-        _panel(fig, (1, 2), slot, [(ref, REFERENCE), (moving, SOURCE)], _centre(both), _half_size(both), (20.0, -60.0),
-               f"{name}: source (orange), reference (blue)")
+        panel(fig, (1, 2), slot, [(ref, REFERENCE), (moving, SOURCE)], centre(both), half_size(both), (20.0, -60.0),
+              f"{name}: source (orange), reference (blue)")
     fig.suptitle(title, fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -62,7 +62,7 @@ PROTOCOL = [
 
 def compose_recipe(model: str) -> Any:
     """The model's training recipe as ``src.train`` composes it (``model=<model>`` plus its recipe)."""
-    from baselines.learned.adapter import compose_conf
+    from src.compose import compose_conf
 
     return compose_conf([f"model={model}"] + ([f"recipe={RECIPE_OF[model]}"] if model in RECIPE_OF else []))
 

@@ -43,9 +43,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from baselines.methods import Method, display_name, get_method, method_of_network
 from benchmarks import tables
-from benchmarks.grid_plan import CONF_DIR, LOADER_KEYS, compose_experiment
 from benchmarks.paper import EXPERIMENT_LABELS, canonical_experiment
+from src.compose import compose_experiment
 from src.errors import CheckpointError, ConfigError, exit_code_of
+from src.pair_sets import LOADER_KEYS
+from src.paths import CONF_DIR
 
 METRICS = ("Error(R)", "Error(t)", "RMSE(R)")
 #: Data keys that change how the test set is loaded, not which pairs it holds (the cache folder does count).
@@ -185,7 +187,7 @@ def own_test_pairs(run: Run, overrides: Sequence[str]) -> int | None:
         return limit * size  # the grid takes at most the whole test set
     if limit is None or float(limit) >= 1.0:
         return None
-    from benchmarks.grid_plan import build_test_set
+    from src.pair_sets import build_test_set
 
     total = build_test_set(run.experiment, str(run.cfg.sampling), str(run.cfg.partial), str(run.cfg.data.dataset),
                            overrides).definition["num_test_pairs"]

@@ -41,9 +41,9 @@ from baselines.methods import display_name  # noqa: E402
 from src.data.scan_pairs import ScanPairDataset  # noqa: E402
 from src.data.scans import apply_transform  # noqa: E402
 from src.errors import ConfigError, UserError  # noqa: E402
+from src.cloud_panels import OVERLAP, REFERENCE, REST, SOURCE, centre, half_size, panel  # noqa: E402
 from src.metrics import pair_errors  # noqa: E402
 
-SOURCE, REFERENCE, OVERLAP, REST = "#e69f00", "#0072b2", "#d62728", "#c8c8c8"
 PICKS = ("worst", "median", "best")
 PANEL_INCHES = 1.7
 
@@ -139,27 +139,6 @@ def pictures(dataset, indices: dict[int, str], registrators: dict[str, Registrat
 # --- drawing ------------------------------------------------------------------------------------------
 
 
-def _centre(points: np.ndarray) -> np.ndarray:
-    return (points.max(axis=0) + points.min(axis=0)) / 2
-
-
-def _half_size(*clouds: np.ndarray) -> float:
-    """Half the side of the cube that holds each of ``clouds`` around its own centre."""
-    return max(float(np.abs(c - _centre(c)).max()) for c in clouds)
-
-
-def _panel(fig, grid, slot: int, clouds, centre: np.ndarray, half: float, view: tuple[float, float], title: str) -> None:
-    ax = fig.add_subplot(*grid, slot, projection="3d")
-    for points, color in clouds:
-        ax.scatter(*points.T, s=1.2, c=color, depthshade=False, linewidths=0, axlim_clip=True)
-    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
-           zlim=(centre[2] - half, centre[2] + half))
-    ax.set_box_aspect((1, 1, 1), zoom=1.35)
-    ax.view_init(elev=view[0], azim=view[1], vertical_axis="y")
-    ax.set_axis_off()
-    ax.set_title(title, fontsize=7, pad=0)
-
-
 def _error(estimate: np.ndarray, gt: np.ndarray) -> str:
     err = pair_errors(torch.as_tensor(estimate[None]), torch.as_tensor(gt[None]), "zyx")
     return f"{float(err['rot_deg'][0]):.1f}°, {float(err['trans_norm'][0]):.3f}"
@@ -170,20 +149,20 @@ def draw_pair(fig, pic: PairPicture, labels: dict[str, str], view: tuple[float, 
     grid = (3 if pic.masks else 1, columns)
     truth = apply_transform(pic.gt, pic.src)
     aligned = np.concatenate([pic.ref, truth])  # every aligned panel shows the reference's frame around these
-    half = _half_size(pic.src, aligned)
+    half = half_size(pic.src, aligned)
     top = [([(pic.src, SOURCE)], pic.src, "source"), ([(pic.ref, REFERENCE)], aligned, "reference"),
            ([(pic.ref, REFERENCE), (truth, SOURCE)], aligned, "ground truth")]
     top += [([(pic.ref, REFERENCE), (apply_transform(estimate, pic.src), SOURCE)], aligned,
              f"{labels[m]}\n" + (f"failed ({pic.failures[m]})" if m in pic.failures else _error(estimate, pic.gt)))
             for m, estimate in pic.estimates.items()]
-    panels = [(slot, *panel) for slot, panel in enumerate(top, start=1)]
+    panels = [(slot, *spec) for slot, spec in enumerate(top, start=1)]
     for row, (cloud, anchor, name) in enumerate(((pic.src, pic.src, "source"), (pic.ref, aligned, "reference")), start=1):
         for k, mask in enumerate(pic.masks):
             stage = "truth" if k == len(pic.masks) - 1 else f"iter. {k + 1}"
             colours = np.where(mask[row - 1], OVERLAP, REST)
             panels.append((row * columns + k + 1, [(cloud, colours)], anchor, f"OMNet mask, {stage}\n({name})"))
     for slot, clouds, anchor, title in panels:
-        _panel(fig, grid, slot, clouds, _centre(anchor), half, view, title)
+        panel(fig, grid, slot, clouds, centre(anchor), half, view, title)
     fig.suptitle(pic.title, fontsize=8)
     return [title for *_, title in panels]
 
@@ -247,7 +226,7 @@ def _chosen_pairs(args: argparse.Namespace, test_set) -> dict[int, str]:
 
 def run(args: argparse.Namespace) -> list[str]:
     """Draw the chosen pairs into ``args.out``; the panel titles."""
-    from benchmarks.grid import build_test_set
+    from src.pair_sets import build_test_set
 
     view = tuple(float(v) for v in args.view.split(","))
     if len(view) != 2:

@@ -1,7 +1,7 @@
 """The grid's plan: its configuration, test sets, methods and cells (see :mod:`benchmarks.grid`).
 
 :func:`plan` turns the grid's config into :class:`Cell` objects: every method × experiment × sampling
-× partial manner not excluded, each with its fixed test set (:func:`build_test_set`, the pairs of
+× partial manner not excluded, each with its fixed test set (:func:`src.pair_sets.build_test_set`, the pairs of
 ``src.eval +exp=<experiment>``), its registrator (:class:`MethodFactory`) and a digest of everything
 that defines its results (method and options, checkpoint or weights contents, test set and data
 content hash, number of pairs, timeout), which names its files and makes finished cells reusable.
@@ -23,17 +23,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import hydra
-import numpy as np
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from baselines import check_cloud, resolve_registrator
+from baselines import resolve_registrator
 from baselines.base import Registrator
 from baselines.methods import METHODS, default_grid_methods
 from src.config import register_resolvers
 from src.data.cache import file_sha256
-from src.errors import CheckpointError, ConfigError, PointCloudError
+from src.errors import CheckpointError, ConfigError
+from src.pair_sets import TestSet, build_test_set
 
 # torch, pandas, torchmetrics and lightning are imported where they are used: the worker processes
 # of run_pairs (spawned) re-import the grid's modules, and light modules keep their start-up short.
@@ -41,10 +40,8 @@ from src.errors import CheckpointError, ConfigError, PointCloudError
 register_resolvers()
 
 GRID_FORMAT = 1
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 SAMPLINGS = ("os", "ts")
 PARTIALS = ("prnet", "rpmnet", "none")
-LOADER_KEYS = ("batch_size", "eval_batch_size", "num_workers", "pin_memory", "persistent_workers", "cache_root", "_target_")
 
 # The app's primary config only pulls in conf/benchmark/default.yaml, so that `+benchmark=<name>`
 # (conf/benchmark/<name>.yaml, package `benchmark`) can be appended on the command line.
@@ -56,32 +53,6 @@ ConfigStore.instance().store(name="benchmark_grid", node={
 
 
 # --- composing the experiments --------------------------------------------------------------------
-
-
-def compose_experiment(overrides: Sequence[str]) -> DictConfig:
-    """``conf/config.yaml`` composed with ``overrides`` (inside a Hydra app: its own search path),
-    checked by :func:`src.validation.validate_config`."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
-
-    from src.validation import validate_config
-
-    try:
-        if GlobalHydra.instance().is_initialized():
-            cfg = compose("config", overrides=list(overrides))
-        else:
-            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-                cfg = compose("config", overrides=list(overrides))
-    except HydraException as err:
-        experiment = next((o.split("=", 1)[1] for o in overrides if o.startswith("+exp=")), None)
-        available = sorted(p.stem for p in (CONF_DIR / "exp").glob("*.yaml"))
-        if experiment and "exp/" in str(err) and experiment not in available:
-            raise ConfigError(f"unknown experiment '{experiment}'; available: {', '.join(available)}") from None
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"cannot compose the test set with overrides {list(overrides)}: {first}") from None
-    validate_config(cfg)
-    return cfg
 
 
 def _command_line_data_overrides() -> list[str]:
@@ -108,65 +79,6 @@ def _data_choice(cfg: DictConfig) -> str | None:
             return str(choice)
     data = cfg.get("data")
     return str(data.dataset) if data is not None and data.get("dataset") else None
-
-
-@dataclass
-class TestSet:
-    """One (experiment, sampling, partial): its composed config, datamodule and definition."""
-
-    experiment: str
-    sampling: str
-    partial: str
-    cfg: DictConfig
-    dataset: Any  # src.data.dataset.PairDataset
-    definition: dict[str, Any]
-    _pairs: list | None = None
-
-    @property
-    def key(self) -> str:
-        return f"{self.experiment}/{self.sampling}/{self.partial}"
-
-    @property
-    def dataset_name(self) -> str:
-        return str(self.definition["dataset"])
-
-    @property
-    def noise_sigma(self) -> float:
-        return float(self.definition["pair"].get("noise_sigma") or 0.0)
-
-    def pairs(self, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """The first ``n`` pairs ``(src, ref, transform_gt)``; each cloud is checked (≥ 3 points, finite)."""
-        if self._pairs is None:
-            self._pairs = []
-        for index in range(len(self._pairs), n):
-            sample = self.dataset[index]
-            src, ref = sample["points_src"].numpy(), sample["points_ref"].numpy()
-            try:
-                check_cloud(src, "points_src")
-                check_cloud(ref, "points_ref")
-            except PointCloudError as err:
-                raise PointCloudError(f"test set {self.key}, pair {index}: {err}") from None
-            self._pairs.append((src, ref, sample["transform_gt"].numpy().astype(np.float64)))
-        return self._pairs[:n]
-
-
-def build_test_set(experiment: str, sampling: str, partial: str, data: str | None, extra: Sequence[str]) -> TestSet:
-    overrides = [f"+exp={experiment}", f"sampling={sampling}", f"partial={partial}"]
-    if data:
-        overrides.append(f"data={data}")
-    overrides += list(extra)
-    cfg = compose_experiment(overrides)
-    datamodule = hydra.utils.instantiate(cfg.data)
-    datamodule.setup("test")  # DatasetError if the test set was never prepared
-    if "test" not in datamodule.datasets:
-        raise ConfigError(f"experiment {experiment} has no test split (data.splits.test)")
-    data_cfg = OmegaConf.to_container(cfg.data, resolve=True)
-    definition = {k: v for k, v in data_cfg.items() if k not in LOADER_KEYS}
-    if "splits" in data_cfg:  # a cache datamodule: of its splits only the test split defines the test set
-        definition["splits"] = {"test": data_cfg["splits"]["test"]}
-    definition["content_hash"] = datamodule.cache.manifest.get("content_hash")
-    definition["num_test_pairs"] = len(datamodule.datasets["test"])
-    return TestSet(experiment, sampling, partial, cfg, datamodule.datasets["test"], definition)
 
 
 # --- methods -----------------------------------------------------------------------------------------
@@ -247,7 +159,7 @@ class MethodFactory:
         for key in ("device", "batch_size"):  # same results, different speed
             config.pop(key, None)
         if config.get("weights"):
-            from baselines.learned.published import weights_sha256
+            from baselines.learned.published import weights_sha256  # torch: not in the grid's worker start-up
 
             config["weights_sha256"] = weights_sha256(config["weights"])
         checkpoint = config.get("checkpoint")

@@ -185,7 +185,7 @@ OVERLAP_BINS = (0.5, 0.7)
 
 def grid_pairs(grid_dir: Path, test_set) -> pd.DataFrame:
     """The per-pair rows (``pairs.parquet``) of a grid's last run on ``test_set`` (a
-    :class:`benchmarks.grid.TestSet`); every cell must have been computed on exactly that test set."""
+    :class:`src.pair_sets.TestSet`); every cell must have been computed on exactly that test set."""
     path = grid_dir / "pairs.parquet"
     if not path.is_file():
         raise ValueError(f"{path} does not exist: run `python -m benchmarks.grid` first")
@@ -207,7 +207,7 @@ def scan_pair_rows(grid_dir: Path, overrides: Sequence[str] = ()) -> tuple[pd.Da
     """The per-pair rows of a ``+benchmark=scan_pairs`` grid with each pair's ``overlap``, ``source`` and
     ``reference`` scans and the method's display ``label``; and the scan sets' names. The test set is
     rebuilt from ``+exp=scan_pairs`` and ``overrides`` (the grid's data overrides)."""
-    from benchmarks.grid import build_test_set
+    from src.pair_sets import build_test_set
 
     test_set = build_test_set(SCAN_PAIRS, "ts", "prnet", None, overrides)
     rows = grid_pairs(grid_dir, test_set)

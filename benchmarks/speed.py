@@ -2,45 +2,8 @@
 "Speed comparison for registering a point cloud pair of various sizes"): rows = number of points,
 columns = methods.
 
-    python -m benchmarks.speed                                       # every available method, 512..4096 points
-    python -m benchmarks.speed --methods icp,fgr,symmetric_icp --sizes 1024 --repeats 10
-    python -m benchmarks.speed --methods omnet,dcp --checkpoint omnet=outputs/.../best.ckpt
-    python -m benchmarks.speed --devices cpu --max-seconds 20 --out results/speed
-    python -m benchmarks.speed --methods omnet --batch-sizes 1,64,256 --compile reduce-overhead --precision bf16
-
-Pairs. For each size N, ``warmup + repeats`` pairs of the asymmetric L-shaped test solid
-(:func:`baselines.testing.l_shape_surface`): the source is one sampling of N points, the reference
-another sampling of N points moved by a random rigid motion of the paper's range (Euler angles in
-[0°, 45°], translation in ±0.5). The first ``warmup`` pairs are not timed; the table shows the
-**median** over the timed pairs (the CSV also has the quartiles).
-
-Methods. Classical methods (the grid's default list of :mod:`baselines.methods`; Go-ICP only when named, as the
-paper leaves it out for its speed) always run on the CPU, in this process, with the threads their libraries use by
-default. Learned networks run one pair per forward pass (batch 1) on each device of ``--devices``
-(default: the CPU, and the GPU when CUDA is available), with the weights of ``--checkpoint
-name=PATH`` or, without one, **freshly initialised weights** of the paper-sized network
-(``conf/model/<name>.yaml``, ``--model-scale 1.0``): timing does not need trained weights; such
-columns are marked † and ``weights=untrained`` in the CSV.
-
-Batched throughput. ``--batch-sizes 1,64,...`` also times learned networks on B pairs per forward pass
-(all B pairs of one size stacked, host-to-device copy and the result's copy back included) and reports
-pairs per second. ``--compile default|reduce-overhead|max-autotune`` wraps the network in
-``torch.compile`` (``reduce-overhead`` uses CUDA graphs on a GPU), ``--precision bf16`` runs it under
-bf16 autocast (OMNet keeps its poses in float32); compilation happens during the warm-up.
-
-Distance to the machine's limit. For learned networks, the matrix-product FLOPs of one call are counted
-(:class:`torch.utils.flop_counter.FlopCounterMode`, in an extra untimed call on the first timed input) and
-divided by the median time; after every timed call one ``torch.mm`` of 4096×1024 by 1024×1024 (in the
-network's precision) is timed too, and ``% of mm`` is the median over the timed calls of the network's rate
-over the adjacent product's, so that a busy machine slows both alike. ``--clock cpu`` times with the process's
-CPU time instead of the wall clock (``--threads 1`` on a shared CPU: time spent waiting for a core is not counted).
-
-Outputs (``--out``, default ``outputs/speed``): ``speed.csv`` (one row per method × device × size:
-``points, batch, method, method_id, device, weights, ms_per_pair, ms_p25, ms_p75, pairs_per_s, runs,
-gflop_per_call, gflop_per_s, mm_gflop_per_s, pct_of_mm, note``) and ``speed.md`` (one batch-1 table per device
-and, with batch sizes > 1, a throughput table, and for networks the distance to the limit; the device and the
-machine in its header; with ``--paper``, default on when the paper's CSV is found, the paper's own table below
-for reference).
+Usage: ``python -m benchmarks.speed --help``. The pairs, how each method is timed, the batched throughput,
+the distance to the machine's limit and the outputs: ``docs/methods/speed.md``.
 """
 
 from __future__ import annotations
@@ -69,6 +32,14 @@ DEFAULT_SIZES = (512, 1024, 2048, 4096)
 #: Classical methods of the grid's default list left out of the default speed table unless named (the paper omits Go-ICP).
 SLOW_CLASSICAL = ("goicp",)
 PAPER_SPEED_CSV = "supp_speed_ms.csv"
+#: Examples for ``--help`` (the methods, pairs and outputs: docs/methods/speed.md).
+USAGE = """examples:
+  python -m benchmarks.speed                                       # every available method, 512..4096 points
+  python -m benchmarks.speed --methods icp,fgr,symmetric_icp --sizes 1024 --repeats 10
+  python -m benchmarks.speed --methods omnet,dcp --checkpoint omnet=outputs/.../best.ckpt
+  python -m benchmarks.speed --devices cpu --max-seconds 20 --out results/speed
+  python -m benchmarks.speed --methods omnet --batch-sizes 1,64,256 --compile reduce-overhead --precision bf16
+"""
 
 
 def _learned() -> dict[str, str]:
@@ -513,7 +484,8 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n\n")[0],
+                                     epilog=USAGE, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", default=None,
                         help="comma-separated method names (default: icp, fgr, symmetric_icp and every learned network)")
     parser.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)), help="comma-separated point counts (default: 512,1024,2048,4096)")

@@ -54,7 +54,7 @@ def build_network(model: str, model_scale: float, overrides: list[str]) -> torch
     """The network of ``conf/model/<model>.yaml`` with fresh weights."""
     import hydra
 
-    from baselines.learned.adapter import compose_model_config
+    from src.compose import compose_model_config
 
     return hydra.utils.instantiate(compose_model_config(model, model_scale, overrides).network)
 

@@ -5,9 +5,10 @@
     python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
     python -m src.eval model=dcp +exp=dcp_protocol data=modelnet40 weights=official:dcp_v1   # published weights
 
-``weights`` (instead of ``ckpt_path``): ``official:<name>`` or a file of a known layout, imported by
-:mod:`baselines.learned.published` into the configured model's network class (the network's
-settings come from the weights' registry entry; the metric convention from the experiment).
+``weights`` (instead of ``ckpt_path``): ``official:<name>`` or a file of a known layout, imported into the
+configured model's network class by the function ``weights_importer`` names
+(``baselines.learned.published.published_module``: the network's settings come from the weights' registry
+entry; the metric convention from the experiment).
 """
 
 from __future__ import annotations
@@ -58,9 +59,10 @@ def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
         return load_checkpoint(ckpt_path, cfg), ckpt_path
     if cfg.ckpt_path:
         raise ConfigError("give either ckpt_path=PATH or weights=official:<name>, not both")
-    from baselines.learned.published import published_module
-
-    module = published_module(str(weights), cfg.model, expected_target=cfg.model.network._target_)
+    # Named by the config (as a network by its _target_), not imported: the weights' records and converters
+    # are the baselines', a layer above src.
+    importer = hydra.utils.get_method(str(cfg.weights_importer))
+    module = importer(str(weights), cfg.model, expected_target=cfg.model.network._target_)
     log.info("evaluating published weights %s (network: %s)", weights, module.hparams["network"])
     return module, str(weights)
 

@@ -10,6 +10,8 @@ import os
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+#: The Hydra configs (``conf/config.yaml`` and its groups).
+CONF_DIR = REPO_ROOT / "conf"
 
 
 def shared_dir() -> Path:

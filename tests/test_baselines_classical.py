@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from baselines import get_registrator, run_pairs, transform_problem
-from baselines.base import POINT_BUDGET
+from baselines.conditioning import POINT_BUDGET
 from baselines.classical import goicp as goicp_module
 from baselines.classical.fgr import FGR
 from baselines.classical.symmetric_icp import symmetric_step

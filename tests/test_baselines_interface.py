@@ -16,13 +16,8 @@ from baselines import (
     register_registrator,
     transform_problem,
 )
-from baselines.base import (
-    _REGISTRY,
-    POINT_BUDGET,
-    budget_voxel_size,
-    voxel_down_sample,
-    working_frame,
-)
+from baselines.conditioning import POINT_BUDGET, budget_voxel_size, voxel_down_sample, working_frame
+from baselines.registry import _REGISTRY
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface, make_pair
 from src.errors import ConfigError, PointCloudError
 from src.geometry.numpy_rigid import project_to_rotation

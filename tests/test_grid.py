@@ -16,6 +16,7 @@ from baselines import get_registrator, register_registrator
 from baselines.testing import ToyRegistrator
 from src.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
 from src.metrics import METRIC_NAMES, RegistrationMetrics
+from src.pair_sets import TestSet
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 TINY_DATA = [
@@ -198,7 +199,7 @@ def test_clear_errors(tmp_path, cache_root):
 
 def test_degenerate_test_pair_is_named():
     sample = {"points_src": torch.ones(5, 3), "points_ref": torch.rand(5, 3), "transform_gt": torch.eye(4)}
-    test_set = grid.TestSet("unseen_shapes", "ts", "prnet", None, [sample], {})
+    test_set = TestSet("unseen_shapes", "ts", "prnet", None, [sample], {})
     with pytest.raises(PointCloudError, match="unseen_shapes/ts/prnet, pair 0: points_src: degenerate cloud"):
         test_set.pairs(1)
 

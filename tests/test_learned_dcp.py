@@ -4,8 +4,8 @@
 import torch
 from hydra.utils import instantiate
 
-from baselines.learned.adapter import compose_model_config
 from baselines.learned.dcp import DCP
+from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
 from registration_helpers import assert_reloads_the_same

@@ -7,7 +7,6 @@ import torch
 from hydra.utils import instantiate
 from scipy.spatial.transform import Rotation
 
-from baselines.learned.adapter import compose_model_config
 from baselines.learned.common.encoders import PointNetEncoder
 from baselines.learned.common.global_feature import (
     FeatureMetricDecoder,
@@ -24,6 +23,7 @@ from baselines.learned.common.global_feature import (
     skew,
 )
 from baselines.learned.common.procrustes import weighted_procrustes
+from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
 from src.models.module import RegistrationModule

@@ -5,8 +5,8 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from baselines.learned.adapter import compose_model_config
 from baselines.learned.idam import IDAM
+from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
 from registration_helpers import seeded_losses_before_after

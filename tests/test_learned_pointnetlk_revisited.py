@@ -5,10 +5,10 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from baselines.learned.adapter import compose_model_config
 from baselines.learned.common.encoders import PointNetEncoder
 from baselines.learned.common.global_feature import eval_mode, lk_jacobian, pointnet_jacobian
 from baselines.learned.pointnetlk_revisited import PointNetLKRevisited
+from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.geometry import se3_inverse
 from registration_helpers import assert_reloads_the_same, assert_rigid, eval_losses_before_after

@@ -7,9 +7,9 @@ import torch
 import torch.nn.functional as F
 from hydra.utils import instantiate
 
-from baselines.learned.adapter import compose_model_config
 from baselines.learned.common.correspondence import estimate_normals
 from baselines.learned.rpmnet import RPMNet
+from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.errors import ConfigError, PointCloudError
 from src.models.module import RegistrationModule

@@ -14,13 +14,14 @@ from omegaconf import OmegaConf
 
 import benchmarks.grid  # noqa: F401 - stores the grid's primary config
 from baselines import get_registrator, resolve_registrator
-from baselines.learned.adapter import LearnedRegistrator, compose_model_config
+from baselines.learned.adapter import LearnedRegistrator
 from baselines.learned.published import PUBLISHED, Published
 from baselines.methods import METHODS, display_name, find_method, get_method, markdown_table, paper_rank
 from baselines.result import inlier_fit
 from baselines.testing import euler_transform, make_pair
 from benchmarks.paper import method_key
 from benchmarks.tables import build_table
+from src.compose import compose_model_config
 from src.errors import ConfigError
 from src.paths import shared_path
 

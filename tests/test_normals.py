@@ -14,6 +14,7 @@ from src.config import register_resolvers
 from src.data.cache import CacheSplit, write_cache
 from src.data.datamodule import RegistrationDataModule
 from src.data.dataset import PairDataset
+from src.data.pipelines import build_pair_transforms
 from src.data.prepare import prepare
 from src.data.sampling import sample_shape
 from src.data.synthetic import generate_shapes
@@ -25,7 +26,6 @@ from src.data.transforms import (
     Resample,
     RPMNetCrop,
     Shuffle,
-    build_pair_transforms,
 )
 from src.errors import ConfigError, DatasetError, PointCloudError
 from src.paths import REPO_ROOT, shared_path

@@ -7,10 +7,10 @@ from scipy.spatial import cKDTree
 from torch.utils.data import DataLoader
 
 from src.data.dataset import EvalShardSampler
+from src.data.pipelines import build_pair_transforms
 from src.data.transforms import (
     OverlapRatioCrop,
     RandomRigidTransform,
-    build_pair_transforms,
     median_spacing,
     overlap_fraction,
 )

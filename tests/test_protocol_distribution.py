@@ -14,7 +14,8 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from src.data.transforms import RPMNetCrop, build_pair_transforms
+from src.data.pipelines import build_pair_transforms
+from src.data.transforms import RPMNetCrop
 
 NUM_PAIRS = 2000
 NUM_SHAPES = 20

@@ -17,7 +17,8 @@ from baselines import get_registrator
 from baselines.learned.common.encoders import PointNetEncoder
 from baselines.learned.common.global_feature import eval_mode, lk_jacobian
 from baselines.learned.pointnetlk import learning3d_reported_transform
-from baselines.learned.published import PUBLISHED, convert, published_module, resolve
+from baselines.learned.published import PUBLISHED, published_module, resolve
+from baselines.learned.weight_converters import convert
 from src.config import register_resolvers
 from src.data.perturbations import TwistPerturbation, UnitCube, build_twist_transforms, twist_matrix
 from src.errors import CheckpointError, ConfigError

@@ -1,6 +1,6 @@
 """Symmetric ICP from the identity: flip rate on the protocol's pairs, and its correspondence helpers.
 
-The pairs are the PRNet manner of ``src.data.transforms.build_pair_transforms`` (Euler angles in
+The pairs are the PRNet manner of ``src.data.pipelines.build_pair_transforms`` (Euler angles in
 [0°, 45°] per axis, translations in ±0.5, 768-point partial crops, noise σ = 0.01), OS and TS, on 16
 synthetic airplanes: 96 pairs. Share with a rotation error over 30°, measured on them: this module
 before the fix (one-way matching, max correspondence distance 0.5) 15.6 %, one-way without a distance
@@ -23,7 +23,7 @@ from baselines.classical import symmetric_icp as sym
 from baselines.testing import euler_transform, rotation_error_deg
 from src.data.sampling import sample_shape
 from src.data.synthetic import generate_shapes
-from src.data.transforms import build_pair_transforms
+from src.data.pipelines import build_pair_transforms
 from src.geometry.numpy_rigid import apply_transform
 
 SHAPES = 16  # synthetic airplanes (the generator's first category)

@@ -7,13 +7,13 @@ from scipy.spatial import cKDTree
 from torch.utils.data import DataLoader
 
 from src.data.dataset import EpochSampler, PairDataset
+from src.data.pipelines import build_pair_transforms
 from src.data.transforms import (
     GaussianNoise,
     PickPair,
     PRNetCrop,
     RandomRigidTransform,
     RPMNetCrop,
-    build_pair_transforms,
 )
 from src.errors import ConfigError, DatasetError, PointCloudError
 

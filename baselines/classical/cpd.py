@@ -7,7 +7,7 @@ Backend: PyPI's ``pycpd`` (MIT, pure NumPy), an optional dependency (``pip insta
 ``RigidRegistration`` always estimates a scale, so :func:`rigid_cpd_class` subclasses it to keep ``s = 1``
 (same rotation, the translation of ``s = 1``). ``sigma2 = None`` lets pycpd start from the mean squared
 distance of all pairs, as the paper. Each EM iteration holds an N×M matrix of responsibilities, so a cloud is
-registered with at most ``point_budget = 4,096`` points (voxel down-sampled beyond, :mod:`baselines.base`).
+registered with at most ``point_budget = 4,096`` points (voxel down-sampled beyond, :mod:`baselines.conditioning`).
 Defaults: pycpd's (``w = 0``, 100 iterations, tolerance 1e-3); ``w`` in {0, 0.2, 0.5} on 30 training pairs gave
 the same accuracy (87 % under 5°) and w > 0 took 2-3x longer (``docs/methods/cpd.md``).
 """

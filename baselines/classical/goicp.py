@@ -1,50 +1,9 @@
-"""Go-ICP (Yang, Li, Campbell & Jia, ICCV 2013 / TPAMI 2016): globally optimal ICP by
-nested branch-and-bound over rotations (angle-axis cube) and translations, with a 3D
-distance transform for closest-point distances and local ICP to tighten the upper bound.
+"""Go-ICP (Yang, Li, Campbell & Jia, ICCV 2013 / TPAMI 2016): globally optimal ICP by nested
+branch-and-bound over rotations and translations, with a distance transform and local ICP.
 
-Backend: the authors' C++ code as wrapped by PyPI's ``py-goicp`` 0.0.4 (GPL-3.0), an
-*optional* extension. Its sdist only builds with old build tools, so
-``baselines/classical/install_goicp.sh`` builds the wheel in a throw-away virtual
-environment and installs just that wheel here (no build tool in this environment changes).
-Without it, constructing :class:`GoICP` raises a ConfigError that names the script.
-
-Conventions. Go-ICP registers a *data* cloud onto a *model* cloud; here data = ``src``,
-model = ``ref``, so its optimum ``(R, t)`` already satisfies ``ref ≈ R src + t``. As the
-authors require, both clouds are first centred independently (each on its own centroid) and
-then scaled by one common factor so that both fit in [-1, 1]^3; the result is mapped back:
-``t = c_ref - R c_src + s t'``. The search domain is the full rotation ball (cube
-[-π, π]^3, ``rotation_half_width = π``) and the translation cube [-0.5, 0.5]^3 in the
-normalised frame (the authors' default; after centring only the centroid shift caused by
-partiality remains, which is well inside it).
-
-Defaults and why (measured with ``python -m baselines.classical.sweep goicp --pairs 20
---workers 2 --timeout 60``: 717-point noisy twice-sampled RPMNet-manner pairs of real
-airplanes, on a shared 2-core machine):
-
-* ``dt_size = 100``: the distance transform is rebuilt for every pair (the model changes)
-  and its cost grows faster than the cube of the size: building it took ~0.3–0.7 s at 100,
-  ~2.6 s at 150, ~6.8 s at 200 (the authors' 300: ~12 s). The grid spans twice the model's
-  bounding box (``dt_expand_factor = 2``), so a cell is ~0.04 normalised units and a look-up
-  is off by at most ~0.035, about the spacing of these clouds; the ICP refinements inside
-  Go-ICP use exact KD-tree distances. 200 instead of 100 gave the same errors (mean 56.8°
-  vs 57.1°, median 7.75° both) at 25.6 s instead of 1.3 s per pair.
-* ``trim_fraction = 0.3``: the clouds are partial (each keeps ~70% of the object), so many
-  source points have no counterpart in the reference. Without trimming they dominate the L2
-  objective, whose optimum is then often a wrong pose, and the bounds close so slowly that
-  pairs run for minutes (one pair with trim 0 / MSE 0.001 ran > 10 min; trim 0 / MSE 0.005
-  timed out at 30 s on 6 of 20 pairs and had 25% of pairs under 5°; trim 0.1 / MSE 0.002
-  timed out on 10 of 20). 0.3 matches the 70% crops of the RPMNet manner and is
-  conservative for the PRNet manner (larger overlap).
-* ``mse_threshold = 0.002`` (normalised units; Go-ICP stops once the best error is within
-  ``mse_threshold × inliers`` of the lower bound). The authors use 0.001 on clean, fully
-  overlapping data; with trim 0.3, 0.001 timed out at 30 s on 8 of 20 pairs. With the
-  defaults no pair timed out at 60 s: 1.3 s mean, 0.74 s median, 7.3 s max per pair;
-  rotation error mean 57°, median 7.8°, 50% of pairs under 5° (the paper reports 69°–76°
-  mean isotropic error for Go-ICP on its RPMNet-manner data: the global optimum of the
-  trimmed objective is often a wrong, e.g. flipped, pose on partial airplanes).
-
-Runs a pair in one thread; the C++ code has no time limit, so give
-:func:`baselines.runner.run_pairs` a ``timeout_s`` (it kills and replaces the worker).
+Backend: the authors' C++ code as wrapped by PyPI's ``py-goicp`` (GPL-3.0), an *optional* extension built by
+``baselines/classical/install_goicp.sh``; without it, constructing :class:`GoICP` raises a ConfigError that
+names the script. Conventions, options and measurements: ``docs/methods/goicp.md``.
 """
 
 from __future__ import annotations

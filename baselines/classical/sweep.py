@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from baselines.base import get_registrator
+from baselines.registry import get_registrator
 from baselines.runner import run_pairs
 from baselines.testing import rotation_error_deg, translation_error
 from src.errors import UserError
@@ -52,7 +52,8 @@ def sweep_pairs(count: int, sampling: str, partial: str, overrides: list[str],
     builds it (``split="test"``), or the training stage's pairs at epoch 0 (``split="train"``)."""
     import hydra  # hydra and the data stack: not in the worker processes
 
-    from benchmarks.grid_plan import TestSet, build_test_set, compose_experiment
+    from src.compose import compose_experiment
+    from src.pair_sets import TestSet, build_test_set
 
     if split == "test":
         pair_set = build_test_set(EXPERIMENT, sampling, partial, None, overrides)

@@ -1,74 +1,11 @@
-r"""Symmetric ICP (Rusinkiewicz, "A Symmetric Objective Function for ICP", SIGGRAPH 2019).
+"""Symmetric ICP (Rusinkiewicz, "A Symmetric Objective Function for ICP", SIGGRAPH 2019).
 
-Our own vectorised numpy implementation on Open3D normals and scipy KD-trees. The OMNet paper ran
-PCL's ``IterativeClosestPointWithNormals`` with ``setUseSymmetricObjective(true)``; line numbers
-below are of PCL commit 1fdb038 and of Rusinkiewicz's own ICP in trimesh2 (mirror
-``Forceflow/trimesh2``, commit 76bc893).
+Our own vectorised numpy implementation on Open3D normals and scipy KD-trees of what the OMNet paper ran
+(PCL's ``IterativeClosestPointWithNormals`` with ``setUseSymmetricObjective(true)``): the motion is split
+into two half-rotations around a translation, and the residual is measured along the sum of both normals.
 
-**Objective and step** (as PCL). The motion ``M`` taking ``p`` (source) onto ``q`` (reference) is
-split into two half-rotations ``R`` (angle θ about the unit axis ``a``) around a translation,
-``M = R · T(t) · R``, and the residual is measured along the sum of both normals:
-
-.. math::
-
-   \varepsilon = \sum_i \big[(R p_i - R^{-1} q_i + t)\cdot(R n_{p,i} + R^{-1} n_{q,i})\big]^2 .
-
-Linearising (paper, Sec. 3.2) with :math:`n_i = n_{p,i} + n_{q,i}`, :math:`\tilde a = a\tan\theta`
-and :math:`\tilde t = t/\cos\theta` gives a linear least-squares problem in six unknowns,
-
-.. math::
-
-   \varepsilon \approx \sum_i \big[(p_i - q_i)\cdot n_i + ((p_i + q_i)\times n_i)\cdot\tilde a
-                                   + n_i\cdot\tilde t\big]^2 ,
-
-solved through its 6x6 normal equations: PCL's ``transformation_estimation_symmetric_point_to_plane_lls.hpp``
-lines 168-197 build the same rows ``[(p+q)×n, n]`` and right-hand side ``(q-p)·n``. Each source
-normal is first flipped to agree with its partner (PCL's ``enforce_same_direction_normals``, on by
-default: same file lines 174-179, ``icp.h`` line 368), as estimated normals have arbitrary signs.
-The step is recovered as :math:`\theta = \arctan\lVert\tilde a\rVert`, :math:`t = \tilde t\cos\theta`
-(the paper's and trimesh2's ``libsrc/ICP.cc`` lines 244-252), in coordinates centred on the
-correspondences and scaled to unit RMS radius (trimesh2 lines 438-453 centre each side on its own
-centroid instead). PCL instead reads ã as small Euler angles and t̃ as the translation
-(``constructTransformationMatrix``, lines 128-147) and does not centre: with PCL's step, or without
-centring, the flip rate below stayed the same.
-
-**Loop and correspondences** (the fix). PCL's loop (``icp.hpp`` lines 164-241) matches one way:
-each source point to its nearest reference point (line 183), with no distance limit by default
-(``registration.h`` line 117), for at most 10 iterations (same file, line 566). Started from the
-identity, the protocols' motions (Euler angles up to 45° per axis about the origin, translations up
-to 0.5 per axis) put the source far from the reference: one-way matching then sends the
-whole source onto a small part of the reference (at the identity, 5-7% of the reference points of
-the real-airplane PRNet-manner pairs receive a partner), and the linearised step turns the wrong
-way (in 9 of the 17 OS pairs that end over 30°, a first step of 40-90° that increases the error)
-or slides along weakly constrained directions.
-That flipped 10% of those pairs by more than 90° and 17-20% by more than 30° (mean Error(R)
-19.7° / 20.6°, OS / TS). Normal signs (``"centroid"`` / ``"none"``), PCL's step, the centring, 10
-iterations, no distance limit, and trimesh2's Huber weights, regularisation, adaptive distance
-rejection and normal-angle rejection each left that tail in place.
-
-We therefore match **both ways**, as Rusinkiewicz's own implementation does (trimesh2
-``select_and_match`` called for mesh1→mesh2 and mesh2→mesh1, ``libsrc/ICP.cc`` lines 380-383):
-each moved source point with its nearest reference point and each reference point with its nearest
-moved source point, all pairs together (a mutual pair counts twice), with PCL's default of no
-distance limit. On the same pairs this brings the share over 30° to 2% / 1%. ``two_way=False``
-restores PCL's one-way matching. Past the basin it does not help: on synthetic airplanes with every
-Euler angle in [30°, 45°], 15% (two-way) and 19% (one-way) of the pairs still end over 30°.
-
-Remaining deviations from PCL: two-way matching; the step's recovery and centring (above);
-``max_iterations = 30`` (PCL 10; 10 gave 4.6° / 3.2° instead of 4.4° / 3.0° on those pairs); stopping
-when a step rotates by less than ``rotation_tolerance`` (rad) and translates by less than
-``translation_tolerance`` (PCL: ``DefaultConvergenceCriteria``); the normals (Open3D PCA, hybrid
-radius 0.1 / at most 30 neighbours, signed away from each cloud's centroid, as for FGR; their sign
-does not matter once each pair is made to agree). trimesh2's covariance-weighted sampling, adaptive
-distance and normal-angle rejection and Huber weights are not used.
-
-``max_correspondence_distance = inf`` (PCL's default). ``python -m baselines.classical.sweep
-symmetric_icp --pairs 200 --set max_correspondence_distance=D`` (noisy TS RPMNet-manner airplane
-pairs, 717 points), mean / median rotation error: two-way 0.3 → 21.76° / 6.57°, 0.5 → 16.24° /
-7.76°, 1.0 → 15.62° / 7.57°, 2.0 and no limit → 16.06° / 7.58°; one-way (before the fix) 0.3 →
-25.39° / 10.69°, 0.5 → 21.73° / 7.85°, 1.0 → 17.68° / 8.55° (paper, RPMNet manner, TS unseen
-categories with noise: 21.8°). On the PRNet-manner airplane pairs (mean Error(R), OS / TS) a limit
-of 1.0 gave 4.4° / 4.7°, no limit 4.4° / 3.0°. One-way (PCL's loop) is ``--set two_way=False``.
+The objective and its step, the options, the sources followed and the measurements behind the defaults:
+``docs/methods/symmetric_icp.md``.
 """
 
 from __future__ import annotations

@@ -41,6 +41,8 @@ import numpy as np
 from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
+# compose_conf: not used here, still imported from here by benchmarks.omnet_lockstep (its home: src.compose)
+from src.compose import compose_conf, compose_model_config  # noqa: F401
 from src.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
 
@@ -49,7 +51,6 @@ __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "read_check
 #: method key -> ``_target_`` of its network, derived from :data:`baselines.methods.METHODS` (for benchmarks.speed).
 LEARNED_METHODS: dict[str, str] = {method.key: method.network for method in learned_methods()}
 DEVICES = ("auto", "cpu", "cuda")
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 log = logging.getLogger(__name__)
 
 
@@ -90,25 +91,6 @@ class LearnedConfig(RegistratorConfig):
         if self.weights is not None:
             self.weights = str(self.weights)
         self.model_overrides = tuple(str(o) for o in (self.model_overrides or ()))
-
-
-def compose_conf(overrides: Sequence[str]) -> Any:
-    """``conf/config.yaml`` composed with ``overrides`` (in Hydra's running context if there is one)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from src.config import register_resolvers
-
-    register_resolvers()
-    if GlobalHydra.instance().is_initialized():
-        return compose("config", overrides=list(overrides))
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
-
-
-def compose_model_config(model: str, model_scale: float, overrides: Sequence[str] = ()) -> Any:
-    """The ``model`` group of ``conf/`` for ``conf/model/<model>.yaml`` (a RegistrationModule config)."""
-    return compose_conf([f"model={model}", f"model_scale={model_scale}", *overrides]).model
 
 
 def read_checkpoint_network(path: str | Path) -> str:
@@ -186,7 +168,7 @@ class LearnedRegistrator(Registrator):
 
     def _check_weights(self, spec: str) -> None:
         """Published weights must exist, be intact and fit this method's network (CheckpointError)."""
-        from baselines.learned.published import network_config, resolve
+        from baselines.learned.published import network_config, resolve  # torch: kept out of `import baselines`
 
         target = network_config(resolve(spec).entry)["_target_"]
         if target != self.network_target:
@@ -236,7 +218,7 @@ class LearnedRegistrator(Registrator):
         if self.config.fresh_weights:
             module = self._build_fresh()
         elif self.config.weights:
-            from baselines.learned.published import published_module
+            from baselines.learned.published import published_module  # torch: kept out of `import baselines`
 
             module = published_module(self.config.weights, expected_target=self.network_target)
         else:

@@ -49,7 +49,7 @@ from baselines.learned.common.global_feature import (
     register_lk_delta,
 )
 from baselines.learned.pointnetlk import pointnet_channels
-from src.data.transforms import build_pair_transforms
+from src.data.pipelines import build_pair_transforms
 from src.geometry import se3_inverse
 
 

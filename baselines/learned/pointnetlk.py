@@ -1,47 +1,10 @@
 """PointNetLK (Aoki et al., CVPR 2019): PointNet global features registered by inverse-compositional
 Lucas–Kanade with a finite-difference Jacobian.
 
-From the paper: a PointNet (no T-nets) φ maps a cloud to a global feature; the LK Jacobian of φ
-w.r.t. the six twist parameters is approximated by finite differences at the template, and the
-twist update −J⁺ r is composed on the left, ``g ← exp(Δξ) g``, until convergence; trained end to end
-through the loop with the loss ‖G_est·G_gt⁻¹ − I₄‖²_F plus (optionally) the feature residual ‖r‖².
-
-Facts taken from the authors' code (hmgoforth/PointNetLK, ``ptlk/pointlk.py``, ``ptlk/pointnet.py``,
-``experiments/train_pointlk.py``), not its code:
-
-* encoder: shared MLP 3-64-64 | 64-128-1024 (Conv1d + BatchNorm + ReLU after every layer, the
-  1024-wide one included), max pooling, ``dim_k = 1024``, no T-net;
-* LK: step δ = 1e-2 for all six twist parameters (not learned), at most 10 iterations in training
-  (``train_pointlk.py --max-iter 10``) and 20 at test (``test_pointlk.py --max-iter 20``;
-  ``eval_max_iter``), stop when the batch's largest ‖Δξ‖ < 1e-7, both clouds mean-centred first
-  (``p0_zero_mean = p1_zero_mean = True``) and the centring undone on the result,
-  ``T(m_template)·g·T(−m_source)``;
-* BatchNorm: in training, one forward of each cloud in training mode updates the running statistics,
-  then the encoder is switched to eval mode for the whole LK (Jacobian and iterations);
-* loss (``_loss_type = 1``, the default): ``rsq(r) + comp(g, igt)`` — the squared residual summed over
-  the batch and features, plus ``mse(g·igt, I)·16`` = the batch mean of ‖G_est·G_gt⁻¹ − I‖²_F;
-* optimiser: Adam with PyTorch defaults (lr 1e-3), no weight decay, no schedule, batch 32, 200 epochs;
-* two-stage recipe (``ex1_train.sh``): a PointNet classifier is trained on the same categories first
-  (:mod:`baselines.learned.pointnet_classifier`), and PointNetLK starts from its features
-  (``--transfer-from``): ``feature_init`` = a ``pointnet_classifier`` checkpoint or
-  ``official:learning3d_pointnet_classifier_features`` (:mod:`baselines.learned.published`), loaded
-  when training starts (:meth:`PointNetLK.train`) unless trained or imported weights were loaded.
-
-learning3d's PointNetLK (``models/pointnetlk.py``, the published ``learning3d_pointnetlk`` weights) is the
-same network with biases before BatchNorm (folded into the running means on import) and 10 iterations
-at test. Its ``ops/data_utils.py`` undoes the centring with the template's mean on both sides
-(``mean_shift`` builds the source's shift from ``p0_m``), so the transforms *it* reports are
-``T(m_t)·g·T(−m_t)``, whose translation is off by ``R(m_s − m_t)`` (about the true translation); the
-transforms here use each cloud's own mean.
-
-Framework mapping: the reference is LK's template (p0) and the source its moved cloud (p1), so g
-maps source → reference, the framework's ``transform_gt`` direction.
-
-Deviations: the hidden layers have no bias before BatchNorm (the same function; 1,344 fewer
-parameters than the official 151k), a singular JᵀJ gives a zero update for that sample instead of
-aborting the whole batch, ``width`` scales the channels (1.0 = the paper's network; the framework's
-``model_scale`` for CPU demos), and ``feature_loss_weight`` can drop the residual term (0 = the paper's
-transform-only loss).
+``feature_init`` starts the encoder from PointNet features (a ``pointnet_classifier`` checkpoint or
+``official:learning3d_pointnet_classifier_features``, :mod:`baselines.learned.published`), loaded when
+training starts (:meth:`PointNetLK.train`). The facts taken from the authors' code, learning3d's variant,
+the framework mapping and the deviations: ``docs/methods/pointnetlk.md``.
 """
 
 from __future__ import annotations
@@ -57,6 +20,7 @@ from baselines.learned.common.global_feature import (
     lk_register,
     register_lk_delta,
 )
+from baselines.learned.published import pointnet_features
 
 from src.geometry import se3_inverse
 from src.models.base import MIN_CHANNELS, scaled
@@ -99,8 +63,6 @@ class PointNetLK(nn.Module):
     def train(self, mode: bool = True) -> PointNetLK:
         """Also applies ``feature_init`` the first time training starts on fresh weights."""
         if mode and self.feature_init and not self._weights_loaded:
-            from baselines.learned.published import pointnet_features
-
             self.encoder.load_state_dict(pointnet_features(self.feature_init, self.encoder))
             self._weights_loaded = True
         return super().train(mode)

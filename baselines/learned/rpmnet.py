@@ -1,43 +1,10 @@
 """RPMNet (Yew & Lee, "RPM-Net: Robust Point Matching using Learned Features", CVPR 2020) for
 :class:`~src.models.module.RegistrationModule`.
 
-Network (paper §4 and the official code, github.com/yewzijian/RPMNet, ``RPMNetEarlyFusion`` with the
-defaults of ``arguments.py``):
-
-* normals (``normals``): ``"estimated"`` (default, the OMNet paper's protocol, §4.2: "normals computed
-  after pre-processing") estimates them from the points the network receives (after cropping /
-  resampling / noise): PCA of the ``normals_k`` = 30 nearest neighbours, signed away from the cloud's
-  centroid (``normal_orientation="centroid"``;
-  :func:`~baselines.learned.common.correspondence.estimate_normals`, the same rule as this project's
-  FGR baseline). ``"given"`` (RPMNet's own code: ``src/models/rpmnet.py`` l. 177-178 reads them
-  from channels 3:6 of its inputs, ``src/data_loader/transforms.py`` l. 204-208 rotates them with
-  the points) takes ``normals_src``/``normals_ref`` from the batch (``data.normals=cache``) with the
-  dataset's own sign (the CAD model's face orientation, as the files store it; not re-signed). The
-  PPF angles depend on the sign, so a network is evaluated with the convention it was trained with
-  (the checkpoint records it). The source normals are rotated with each iteration's estimate
-  (official l. 200);
-* parameter prediction: PointNet on both clouds concatenated with a fourth coordinate 0 (source) /
-  1 (reference): 4-64-64-64-128-1024 (GroupNorm 8/…/16 + ReLU), max-pool, 1024-512-256 (GroupNorm 16
-  + ReLU), then 2 outputs → β = softplus, α = softplus;
-* features (early fusion): for every point its ball neighbours (radius 0.3, at most 64, itself
-  excluded, padded with itself) give [xyz_i, p_j − p_i, PPF(4)] (10 channels) → 96-96-192 (GroupNorm 8
-  + ReLU), max over neighbours, 192-96 (GroupNorm 8 + ReLU) → 96, L2-normalised (``feat_dim`` = 96);
-* matching: log-affinities −β(‖F_x − F_y‖² − α), Sinkhorn with slack row/column, 5 inner
-  iterations; the reference points weighted by the match matrix rows (divided by the row sums) and
-  a Procrustes solve from the *original* source with the row sums as weights;
-* iterations: 2 while training, 5 at evaluation (``num_train_iters`` / ``num_iters``); the pose is
-  detached before moving the source for the next iteration; every iteration's estimate is absolute.
-
-Loss (paper Eq. 10–11, official ``train.py``): per iteration i of n, weighted 0.5^(n−1−i):
-mean |T_i(x) − T_gt(x)| over the source points (L1, "mae"; ``loss_type="mse"`` the code's option)
-+ 0.01·[mean(1 − column sums) + mean(1 − row sums)] of the match matrix (inlier term).
-Optimiser (official ``train.py``): Adam, lr 1e-4, no weight decay, no schedule, batch 8 (crop).
-
-Deviations: by default normals estimated rather than taken from the dataset (see above, per the
-OMNet paper); channel-last Linear layers instead of 1×1 convolutions; the reference features are
-computed once and reused by every iteration (the code recomputes them from the same unchanged
-input: with GroupNorm the result is identical); Procrustes in float64 with a sign(det) reflection fix;
-``width`` scales the hidden channel counts (rounded to multiples of the GroupNorm groups; 1.0 = paper).
+Learned annealing parameters and PPF features matched by Sinkhorn with slack, a weighted Procrustes per
+iteration. Normals are ``"estimated"`` (default, the OMNet paper's protocol) or ``"given"`` (RPMNet's own
+code, ``data.normals=cache``). The network, loss, optimiser and deviations from the official code:
+``docs/methods/rpmnet.md``.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ from src.data.cache import Cache, CacheSplit, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
 from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
-from src.data.transforms import build_pair_transforms
+from src.data.pipelines import build_pair_transforms
 from src.errors import ConfigError, DatasetError
 from src.signals import loader_worker_init
 
@@ -78,7 +78,7 @@ class RegistrationDataModule(L.LightningDataModule):
     """Train/val/test pair loaders for one experiment.
 
     ``splits`` maps each stage to ``{split, categories, slice}``; ``pair`` holds the pair-transform
-    parameters (:func:`~src.data.transforms.build_pair_transforms`); ``normals`` is one of
+    parameters (:func:`~src.data.pipelines.build_pair_transforms`); ``normals`` is one of
     :data:`NORMALS`.
     """
 

@@ -15,7 +15,7 @@ Same interface as :mod:`src.data.transforms` (``transform(sample, rng) -> sample
   reference's scale and mean are applied to both clouds (the same shape, so the pair stays rigid).
 * :func:`build_twist_transforms` — pick pair → (unit cube) → twist → noise → shuffle.
 
-Selected by :func:`src.data.transforms.build_pair_transforms` with ``data.pair.perturbation: twist``
+Selected by :func:`src.data.pipelines.build_pair_transforms` with ``data.pair.perturbation: twist``
 (``twist_mag``, ``twist_random_mag``, ``unit_cube``; full clouds, ``partial=none``):
 ``conf/exp/pointnetlk_protocol.yaml``, ``conf/exp/pointnetlk_revisited_protocol.yaml``.
 """
