@@ -181,7 +181,7 @@ def lockstep(args: argparse.Namespace) -> Path:
     """Train both networks ``args.steps`` steps; write ``curves.csv`` and ``summary.json`` in ``args.out``."""
     import hydra
 
-    from baselines.learned.adapter import compose_conf
+    from src.compose import compose_conf
 
     torch.set_num_threads(1)
     cfg = compose_conf([*PROTOCOL, f"model_scale={args.width}", f"data.batch_size={args.batch}",

@@ -41,8 +41,7 @@ import numpy as np
 from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
-# compose_conf: not used here, still imported from here by benchmarks.omnet_lockstep (its home: src.compose)
-from src.compose import compose_conf, compose_model_config  # noqa: F401
+from src.compose import compose_model_config
 from src.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
 
