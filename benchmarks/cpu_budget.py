@@ -10,7 +10,7 @@ inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its 
 
     python -m benchmarks.cpu_budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2] [--archive DIR]
     python -m benchmarks.cpu_budget archive --root RUNS --out benchmarks/results/cpu_budget_runs
-    python -m benchmarks.cpu_budget report --root benchmarks/results/cpu_budget_runs --out benchmarks/results
+    python -m benchmarks.cpu_budget_report --root benchmarks/results/cpu_budget_runs --out benchmarks/results
 
 ``archive`` copies each run's record (plan, commands, CSV logs, test metrics: kilobytes, no checkpoint)
 into the repository, so that the report is made from committed files: run folders need not outlive
@@ -281,18 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/results/cpu_budget_runs"))
-    rep = sub.add_parser("report", help="curves, table and plot")
-    rep.add_argument("--root", type=Path, required=True)
-    rep.add_argument("--out", type=Path, default=Path("benchmarks/results"))
     args = parser.parse_args(argv)
 
     def action() -> None:
-        if args.command == "report":
-            from benchmarks.cpu_budget_report import report
-
-            for path in report(args.root, args.out):
-                print(f"wrote {path}")
-            return
         if args.command == "archive":
             print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
             return

@@ -3,17 +3,21 @@
 Reads the run folders of ``python -m benchmarks.cpu_budget run --root RUNS`` (each method's ``plan.json``,
 its stages' CSV logs and test ``metrics.json``); a stage that precedes the method's registration stage
 (PointNetLK's classifier) shifts its curve by the CPU hours it took.
+
+    python -m benchmarks.cpu_budget_report --root benchmarks/results/cpu_budget_runs --out benchmarks/results
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 from pathlib import Path
 
 import pandas as pd
 
 from benchmarks.cpu_budget import METHODS, Stage
-from src.errors import ConfigError
+from src.errors import ConfigError, exit_code_of
 from src.reporting import read_csv_logs
 
 CURVE_COLUMNS = {"time/cpu_hours": "cpu_hours", "val/Error(R)": "Error(R)", "val/Error(t)": "Error(t)"}
@@ -119,3 +123,15 @@ def report(root: Path, out: Path) -> list[Path]:
     budget_h = json.loads((root / table["method"].iloc[0] / "plan.json").read_text())["budget_cpu_h"]
     plot(curves, paths[2], budget_h)
     return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.cpu_budget_report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--root", type=Path, required=True, help="runs of benchmarks.cpu_budget, or their archive")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    args = parser.parse_args(argv)
+    return exit_code_of(lambda: print("\n".join(f"wrote {path}" for path in report(args.root, args.out))))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
