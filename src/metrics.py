@@ -18,10 +18,18 @@ from torchmetrics import Metric
 from src.geometry import matrix_to_euler, rotation_angle, se3_apply
 
 SUCCESS_THRESHOLDS: tuple[tuple[float, float], ...] = ((1.0, 0.01), (5.0, 0.05))
-METRIC_NAMES: tuple[str, ...] = (
-    "RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "Error(R)", "Error(t)", "chamfer",
-    "success(1deg,0.01)", "success(5deg,0.05)", "score",
-)
+# The metrics' names, as every table, plot, log and card spells them (one place: import these).
+RMSE_R, MAE_R, RMSE_T, MAE_T = "RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)"
+ERROR_R, ERROR_T, CHAMFER, SCORE = "Error(R)", "Error(t)", "chamfer", "score"
+SUCCESS_NAMES: tuple[str, ...] = tuple(f"success({deg:g}deg,{t:g})" for deg, t in SUCCESS_THRESHOLDS)
+METRIC_NAMES: tuple[str, ...] = (RMSE_R, MAE_R, RMSE_T, MAE_T, ERROR_R, ERROR_T, CHAMFER, *SUCCESS_NAMES, SCORE)
+#: The paper's tables' metrics (anisotropic, then isotropic), and the short summaries' four.
+PAPER_METRICS: tuple[str, ...] = (RMSE_R, MAE_R, RMSE_T, MAE_T, ERROR_R, ERROR_T)
+SUMMARY_METRICS: tuple[str, ...] = (ERROR_R, ERROR_T, RMSE_R, RMSE_T)
+#: Per-pair errors a grid records for every pair.
+PAIR_ERRORS: tuple[str, ...] = (ERROR_R, ERROR_T, MAE_R, MAE_T, CHAMFER)
+#: The validation curve's names as the CSV logger records them.
+VAL_ERROR_R, VAL_ERROR_T = f"val/{ERROR_R}", f"val/{ERROR_T}"
 
 
 def chamfer_distance(a: Tensor, b: Tensor, squared: bool = False) -> Tensor:
@@ -86,15 +94,14 @@ class RegistrationMetrics(Metric):
     def compute(self) -> dict[str, float]:
         n = self.num_pairs.clamp_min(1)
         values = {
-            "RMSE(R)": (self.sq_euler / (3 * n)).sqrt(),
-            "MAE(R)": self.abs_euler / (3 * n),
-            "RMSE(t)": (self.sq_trans / (3 * n)).sqrt(),
-            "MAE(t)": self.abs_trans / (3 * n),
-            "Error(R)": self.rot_deg / n,
-            "Error(t)": self.trans_norm / n,
-            "chamfer": self.chamfer / n,
-            "success(1deg,0.01)": self.success_0 / n,
-            "success(5deg,0.05)": self.success_1 / n,
+            RMSE_R: (self.sq_euler / (3 * n)).sqrt(),
+            MAE_R: self.abs_euler / (3 * n),
+            RMSE_T: (self.sq_trans / (3 * n)).sqrt(),
+            MAE_T: self.abs_trans / (3 * n),
+            ERROR_R: self.rot_deg / n,
+            ERROR_T: self.trans_norm / n,
+            CHAMFER: self.chamfer / n,
+            **{name: getattr(self, f"success_{k}") / n for k, name in enumerate(SUCCESS_NAMES)},
         }
-        values["score"] = 0.01 * values["Error(R)"] + values["Error(t)"]
+        values[SCORE] = 0.01 * values[ERROR_R] + values[ERROR_T]
         return {k: float(v) for k, v in values.items()}
