@@ -44,7 +44,7 @@ Outputs (``output_dir``, default ``outputs/grid/<benchmark.name>/``):
 * ``pairs.parquet``: the per-pair rows of this run's cells together.
 * ``table.md`` / ``table.tex``: the paper's Table-1 layout via :mod:`benchmarks.tables`.
 
-Bad input (unknown method or experiment, an invalid data or model value, missing checkpoint, a test
+Bad input (an unknown top-level key, unknown method or experiment, an invalid data or model value, missing checkpoint, a test
 set that was never prepared, a degenerate pair) stops with one ``error: ...`` line and exit status 2.
 """
 
@@ -63,6 +63,9 @@ __all__ = ["Cell", "GridResult", "TestSet", "build_test_set", "display_name", "m
 
 
 def _run(cfg: DictConfig) -> None:
+    from src.validation import check_top_level_keys  # (torch: imported where used, see benchmarks.grid_plan)
+
+    check_top_level_keys(cfg, "benchmark_grid")  # a typo'd or unknown top-level key: nothing would read it
     result = run_grid(cfg)
     report(result, cfg)
     log_grid(cfg, result.tidy)  # wandb.enabled=true: the tidy table as a wandb.Table (src/wandb_logging.py)

@@ -16,14 +16,12 @@ from src.data.cache import Cache, CacheSplit, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
 from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
-from src.data.transforms import build_pair_transforms
+from src.data.transforms import NORMALS, build_pair_transforms
 from src.errors import ConfigError, DatasetError
 from src.signals import loader_worker_init
+from src.validation import check_pair_layout
 
 STAGES = ("train", "val", "test")
-NORMALS = ("none", "cache")
-"""``data.normals``: ``none`` (points only) or ``cache`` (the cache's normals travel with the points
-as ``normals_src``/``normals_ref``; see :mod:`src.data.transforms`)."""
 
 
 def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmetric: bool) -> list[str]:
@@ -131,6 +129,7 @@ class RegistrationDataModule(L.LightningDataModule):
                 continue
             split, indices = select_shapes(self.cache, self.splits[name], self.remove_axisymmetric, self.splits)
             data = self.cache.split(split)
+            check_pair_layout(self.pair, self.cache.pair_sampling, data.points.shape[2], self.dataset)
             stream = TRAIN_STREAM if name == "train" else EVAL_STREAM
             self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream,
                                               normals=self._normals_of(data))
