@@ -301,6 +301,8 @@ def test_train_refuses_weights(tmp_path, cache):
 
 # --- accepted but not used (issue 22 §1) ----------------------------------------------------------------
 
+#: A Hydra app run in this process leaves its logging alone (its handlers would hold capsys's closed stderr).
+NO_LOGGING = ["hydra/job_logging=none", "hydra/hydra_logging=none"]
 TOP_LEVEL = ("the top-level keys are callbacks, ckpt_path, data, hydra, logger, model, model_scale, on_failure, "
              "output_dir, pairs_per_scan, partial, real_train_categories, sampling, seed, task_name, test_after_fit, "
              "test_category, test_size, train_category, trainer, val_repeat, val_size, variant, weights")
@@ -327,7 +329,7 @@ def test_unknown_top_level_keys_are_refused(override, hint):
 def test_unknown_top_level_keys_stop_every_entry_point_in_one_line(module, argv, message, tmp_path, monkeypatch,
                                                                    capsys):
     main = importlib.import_module(module).main
-    monkeypatch.setattr(sys, "argv", [module, *argv, f"hydra.run.dir={tmp_path}", f"output_dir={tmp_path}"])
+    monkeypatch.setattr(sys, "argv", [module, *argv, f"hydra.run.dir={tmp_path}", f"output_dir={tmp_path}", *NO_LOGGING])
     with pytest.raises(SystemExit) as info:
         main()
     assert info.value.code == 2
@@ -381,7 +383,7 @@ def test_overrides_the_pair_pipeline_does_not_read_are_refused(overrides, messag
 
 def test_src_train_refuses_an_override_it_does_not_read(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["src.train", "data.pair.rpmnet_p_keep=0.5", f"hydra.run.dir={tmp_path}",
-                                      f"output_dir={tmp_path}"])
+                                      f"output_dir={tmp_path}", *NO_LOGGING])
     with pytest.raises(SystemExit) as info:
         src.train.main()
     assert info.value.code == 2
