@@ -25,6 +25,9 @@ __all__ = ["Cell", "GridResult", "display_name", "main", "plan", "report", "run_
 
 
 def _run(cfg: DictConfig) -> None:
+    from src.validation import check_top_level_keys  # (torch: imported where used, see benchmarks.grid_plan)
+
+    check_top_level_keys(cfg, "benchmark_grid")  # a typo'd or unknown top-level key: nothing would read it
     result = run_grid(cfg)
     report(result, cfg)
     log_grid(cfg, result.tidy)  # wandb.enabled=true: the tidy table as a wandb.Table (src/wandb_logging.py)

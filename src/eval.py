@@ -24,7 +24,7 @@ from src.errors import ConfigError
 from src.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
-from src.recorded import refuse_unused_in_eval
+from src.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.reporting import report_test_metrics, save_resolved_config
 from src.evaluated import evaluated_record
 from src.trainer import build_trainer
@@ -68,6 +68,7 @@ def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
 
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:
+    refuse_unread_overrides(cfg)
     module, ckpt_path = load_module(cfg)
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)

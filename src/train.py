@@ -30,7 +30,7 @@ from src.checkpoint_io import check_checkpoint
 from src.config import register_resolvers
 from src.errors import ConfigError
 from src.failures import job_main
-from src.recorded import refuse_unused_in_train
+from src.recorded import refuse_unread_overrides, refuse_unused_in_train
 from src.reporting import report_test_metrics, save_resolved_config
 from src.run_info import require_prepared_paper_data
 from src.evaluated import evaluated_record
@@ -88,6 +88,7 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
     refuse_unused_in_train(cfg)
+    refuse_unread_overrides(cfg)
     require_prepared_paper_data(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)

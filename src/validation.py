@@ -9,15 +9,19 @@ with a silently different setting or failing deep inside with a traceback.
 :data:`RULES` is the one table: dotted key -> :class:`Rule`. A rule applies when its key is in the
 config (the network keys only for the networks that have them); keys without a rule (new
 switches, per-model ``recipe`` blocks) and values computed at instantiation (a node with a
-``_target_``) are not this module's business and pass.
+``_target_``) are not this module's business and pass. A top-level key that no config file of the
+application has (``+trainer_max_steps=5``, ``+foo=1``) is refused (:func:`check_top_level_keys`): nothing
+reads it. (A ``data.pair.num_points`` that a cache layout cannot honour is refused once the cache is open:
+:func:`src.data.datamodule.check_pair_layout`.)
 """
 
 from __future__ import annotations
 
 import difflib
+import functools
 import inspect
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,10 +29,12 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from src.data.datamodule import NORMALS
-from src.data.transforms import PARTIAL_MANNERS, PERTURBATIONS, SAMPLINGS
+from src.data.transforms import NORMALS, PARTIAL_MANNERS, PERTURBATIONS, SAMPLINGS
 from src.errors import ConfigError, user_error_behind
 from src.geometry.clouds import MIN_POINTS
+from src.paths import REPO_ROOT
+
+CONF_DIR = REPO_ROOT / "conf"
 
 
 @dataclass(frozen=True)
@@ -208,8 +214,10 @@ def _value(cfg: DictConfig, key: str) -> Any:
 
 
 def validate_config(cfg: DictConfig) -> None:
-    """Raise ConfigError for the first value of ``cfg`` that breaks its rule in :data:`RULES`, then for
-    the first key of an object's node (``_target_``) that its class or function does not take."""
+    """Raise ConfigError for a top-level key of ``cfg`` (``conf/config.yaml``) that no config file has,
+    then for the first value that breaks its rule in :data:`RULES`, then for the first key of an
+    object's node (``_target_``) that its class or function does not take."""
+    check_top_level_keys(cfg, "config")
     for key, rule in RULES.items():
         value = _value(cfg, key)
         if value is _ABSENT or (isinstance(value, dict) and "_target_" in value):
@@ -219,6 +227,50 @@ def validate_config(cfg: DictConfig) -> None:
     for path, node in _object_nodes(cfg):
         _check_options(path, node)
     _check_precision(cfg)
+
+
+#: The config groups of each application's primary config that are not its top-level keys themselves.
+_OTHER_APPS_GROUPS = {"config": ("benchmark", "hydra"), "benchmark_grid": ()}
+
+
+def _is_global(path: Path) -> bool:
+    """Whether a config file's keys are top-level keys (``# @package _global_``, or a primary config)."""
+    return path.parent == CONF_DIR or "@package _global_" in path.read_text().split("\n", 1)[0]
+
+
+@functools.cache
+def top_level_keys(app: str) -> tuple[str, ...]:
+    """Every top-level key that a config of ``app`` can have, read from ``conf/``: ``config`` (``src.train``,
+    ``src.eval``: ``conf/config.yaml``, its groups and the ``@package _global_`` files of experiments,
+    sweeps and recipes) or ``benchmark_grid`` (``benchmarks.grid``: ``conf/benchmark/*.yaml``)."""
+    if app == "benchmark_grid":
+        files = sorted((CONF_DIR / "benchmark").glob("*.yaml"))
+        keys = {"benchmark", "method_options", "data", "hydra"}
+    else:
+        files = [CONF_DIR / "config.yaml"] + sorted(
+            p for p in CONF_DIR.glob("*/**/*.yaml") if p.relative_to(CONF_DIR).parts[0] not in _OTHER_APPS_GROUPS[app])
+        keys = {"hydra"}
+    for path in files:
+        if _is_global(path):
+            keys |= {str(k) for k in OmegaConf.load(path).keys() if k != "defaults"}
+        else:
+            keys.add(path.relative_to(CONF_DIR).parts[0])  # a group's package: its folder's name
+    return tuple(sorted(keys))
+
+
+def check_top_level_keys(cfg: DictConfig, app: str) -> None:
+    """ConfigError for a top-level key of ``cfg`` that no config file of ``app`` has (added with ``+``:
+    nothing reads it, e.g. ``+trainer_max_steps=5``), naming the close matches and the valid keys."""
+    known = top_level_keys(app)
+    unknown = [str(k) for k in cfg.keys() if str(k) not in known]
+    if not unknown:
+        return
+    key = unknown[0]
+    dotted = [f"{k}.{key[len(k) + 1:]}" for k in known if key.startswith(f"{k}_")]  # trainer_max_steps
+    close = dotted or difflib.get_close_matches(key, known, n=3, cutoff=0.5)
+    hint = f"did you mean {', '.join(close)}? " if close else ""
+    raise ConfigError(f"{key} is not a top-level config key (nothing reads it): {hint}the top-level keys are "
+                      f"{', '.join(known)}")
 
 
 #: Precisions Lightning silently replaces on the CPU (by bf16-mixed: there is no fp16 autocast there).

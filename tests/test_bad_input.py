@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import hydra
 import pytest
 import torch
 from registration_helpers import CONF, TINY, compose_config
@@ -22,6 +23,7 @@ from src.files import remove_stale_temporaries, write_atomic
 from src.models.base import check_network
 from src.train import train
 from src.trainer import build_trainer
+from src.data.datamodule import check_pair_layout
 from src.validation import validate_config
 
 ROOT = CONF.parent
@@ -296,3 +298,114 @@ def test_eval_follows_the_experiments_metric_convention(tmp_path, cache):
 def test_train_refuses_weights(tmp_path, cache):
     with pytest.raises(ConfigError, match=r"^weights=official:dcp_v1: src.train does not load weights"):
         train(_tiny(cache, tmp_path, "weights=official:dcp_v1"))
+
+
+# --- accepted but not used (issue 22 §1) ----------------------------------------------------------------
+
+#: A Hydra app run in this process leaves its logging alone (its handlers would hold capsys's closed stderr).
+NO_LOGGING = ["hydra/job_logging=none", "hydra/hydra_logging=none"]
+TOP_LEVEL = ("the top-level keys are callbacks, ckpt_path, data, hydra, logger, model, model_scale, on_failure, "
+             "output_dir, pairs_per_scan, partial, real_train_categories, sampling, seed, task_name, test_after_fit, "
+             "test_category, test_size, train_category, trainer, val_repeat, val_size, variant, weights")
+
+
+@pytest.mark.parametrize("override, hint", [  # were written into config_resolved.yaml and read by nothing
+    ("+trainer_max_steps=5", "did you mean trainer.max_steps? "),
+    ("+foo=1", ""),
+    ("+seeds=3", "did you mean seed? "),
+])
+def test_unknown_top_level_keys_are_refused(override, hint):
+    key = override[1:].split("=")[0]
+    with pytest.raises(ConfigError) as info:
+        validate_config(compose_config(override))
+    assert str(info.value) == f"{key} is not a top-level config key (nothing reads it): {hint}{TOP_LEVEL}"
+
+
+@pytest.mark.parametrize("module, argv, message", [
+    ("src.train", ["+trainer_max_steps=5"], "error: trainer_max_steps is not a top-level config key (nothing reads "
+                                            "it): did you mean trainer.max_steps? the top-level keys are callbacks, "),
+    ("benchmarks.grid", ["+max_pair=3"], "error: max_pair is not a top-level config key (nothing reads it): the "
+                                         "top-level keys are benchmark, data, demo, hydra, method_options, output_dir, "),
+])
+def test_unknown_top_level_keys_stop_every_entry_point_in_one_line(module, argv, message, tmp_path, monkeypatch,
+                                                                   capsys):
+    main = importlib.import_module(module).main
+    monkeypatch.setattr(sys, "argv", [module, *argv, f"hydra.run.dir={tmp_path}", f"output_dir={tmp_path}", *NO_LOGGING])
+    with pytest.raises(SystemExit) as info:
+        main()
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(message)
+
+
+def test_a_pair_size_the_cache_layout_cannot_honour_is_refused(tmp_path, cache):
+    """The synthetic cache's clouds are whole samplings of 2,048 points: num_points=1024 ran on 2,048."""
+    datamodule = hydra.utils.instantiate(_tiny(cache, tmp_path, "data.pair.num_points=1024").data)
+    with pytest.raises(ConfigError) as info:
+        datamodule.setup("test")
+    assert str(info.value) == (
+        "data.pair.num_points=1024 cannot take effect on the synthetic cache (layout independent_samplings): each "
+        "cloud is a whole sampling of 2048 points; sample 1024 points per sampling (data.build.num_points=1024), "
+        "or use data.pair.num_points=2048")
+    check_pair_layout({"num_points": 1024}, "disjoint_subsets", 10_000, "modelnet40_resampled")  # picks 1,024 points
+    check_pair_layout({"num_points": 2048}, "single_sampling", 2048, "modelnet40")  # the sampling's own size
+    with pytest.raises(ConfigError, match=r"^data.pair.num_points=1024 cannot take effect on the modelnet40 cache "
+                                          r"\(layout single_sampling\).* \(python -m src.data.prepare modelnet40 "
+                                          r"--source PATH --num-points 1024\)"):
+        check_pair_layout({"num_points": 1024}, "single_sampling", 2048, "modelnet40")
+
+
+@pytest.mark.parametrize("overrides, message", [  # accepted, recorded and read by nothing
+    (["data.pair.rpmnet_p_keep=0.5"], "data.pair.rpmnet_p_keep=0.5 cannot take effect: it is read only with "
+                                      "data.pair.partial=rpmnet, and this run has data.pair.partial=prnet"),
+    (["partial=rpmnet", "data.pair.prnet_num_keep=512"], "data.pair.prnet_num_keep=512 cannot take effect: it is read "
+                                                         "only with data.pair.partial=prnet, and this run has "
+                                                         "data.pair.partial=rpmnet"),
+    (["data.pair.twist_mag=0.4"], "data.pair.twist_mag=0.4 cannot take effect: it is read only with "
+                                  "data.pair.perturbation=twist, and this run has data.pair.perturbation=euler"),
+    (["+exp=pointnetlk_protocol", "data.pair.rot_mag=90"], "data.pair.rot_mag=90 cannot take effect: it is read only "
+                                                           "with data.pair.perturbation=euler, and this run has "
+                                                           "data.pair.perturbation=twist"),
+    (["data.pair.noise_clip=0.1"], "data.pair.noise_clip=0.1 cannot take effect: it is read only with "
+                                   "data.pair.noise_sigma other than 0, and this run has data.pair.noise_sigma=0.0"),
+    (["+exp=scan_pairs", "sampling=os"], "sampling=os cannot take effect: it is read only with data.dataset other "
+                                         "than scan_pairs, and this run has data.dataset=scan_pairs"),
+])
+def test_overrides_the_pair_pipeline_does_not_read_are_refused(overrides, message):
+    from src.recorded import refuse_unread_overrides
+
+    with pytest.raises(ConfigError) as info:
+        refuse_unread_overrides(compose_config(*overrides), overrides=overrides)
+    assert str(info.value).startswith(message)
+    for read in (["partial=rpmnet", "data.pair.rpmnet_p_keep=0.5"], ["data.pair.noise_sigma=0.01", "data.pair.noise_clip=0.1"],
+                 ["+exp=pointnetlk_protocol", "data.pair.twist_mag=0.4"], ["data.pair.rot_mag=90"]):
+        refuse_unread_overrides(compose_config(*read), overrides=read)
+
+
+def test_src_train_refuses_an_override_it_does_not_read(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["src.train", "data.pair.rpmnet_p_keep=0.5", f"hydra.run.dir={tmp_path}",
+                                      f"output_dir={tmp_path}", *NO_LOGGING])
+    with pytest.raises(SystemExit) as info:
+        src.train.main()
+    assert info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: data.pair.rpmnet_p_keep=0.5 cannot take effect: it is read only with data.pair.partial=rpmnet, and "
+        "this run has data.pair.partial=prnet; drop the override or change data.pair.partial"]
+
+
+@pytest.mark.parametrize("override, message", [  # the test ran on the last weights, labelled as the selected ones
+    ("trainer.limit_val_batches=0", "trainer.limit_val_batches=0 turns validation off, so callbacks.checkpoint "
+                                    "(monitor val/score) never selects a checkpoint and the test would run on the last "
+                                    "weights"),
+    ("trainer.limit_val_batches=0.0", "trainer.limit_val_batches=0.0 turns validation off"),
+    ("+callbacks.checkpoint.save_top_k=0", "callbacks.checkpoint.save_top_k=0 keeps no checkpoint selected on val/score"),
+])
+def test_train_refuses_a_checkpoint_selection_that_cannot_select(override, message, tmp_path, cache):
+    from src.recorded import refuse_unused_in_train
+
+    with pytest.raises(ConfigError) as info:
+        train(_tiny(cache, tmp_path, override))
+    assert str(info.value).startswith(message) and not (tmp_path / "run").exists()
+    for fine in ([override, "callbacks.checkpoint.monitor=null"], ["trainer.limit_val_batches=null"],
+                 ["trainer.limit_val_batches=1"], [override, "trainer.fast_dev_run=true"]):
+        refuse_unused_in_train(_tiny(cache, tmp_path, *fine))

@@ -1,5 +1,5 @@
-"""Disk faults (issue 22): a full disk while preparing, checkpointing or writing results is one line
-(what, where) and leaves no temporary; a valid cache on a read-only mount is read; a cache folder
+"""Disk faults (issue 22): a full disk while preparing, checkpointing, logging metrics (metrics.csv) or
+writing results is one line (what, where), leaves no temporary and keeps what was written; a valid cache on a read-only mount is read; a cache folder
 without write permission says so. The real cases run on a small tmpfs (root only, else skipped); the
 errno cases are injected at the write layer and run everywhere."""
 
@@ -107,3 +107,65 @@ def test_text_writes_name_the_file_and_folder(tmp_path, read_only):
     view = read_only(tmp_path / "out")
     with pytest.raises(DiskError, match=rf"^writing config_resolved.yaml: cannot write in {view} "):
         write_text_atomic(view / "config_resolved.yaml", "x")
+
+
+def _fill(disk: Path) -> None:
+    """Write a filler file until the disk is full."""
+    with open(disk / "filler", "wb", buffering=0) as handle, pytest.raises(OSError) as info:
+        while True:
+            handle.write(b"\0" * 4096)
+    assert info.value.errno == errno.ENOSPC
+
+
+def test_metrics_csv_on_a_full_disk_is_one_line_and_keeps_its_rows(tiny_disk):
+    """Lightning's writer gave a traceback, and a new column's header rewrite truncated the rows on a full disk."""
+    from src.csv_logging import CSVLogger
+
+    logger = CSVLogger(tiny_disk, name="csv")
+    logger.log_metrics({"train/loss": 1.0}, step=0)
+    logger.save()
+    log_dir = Path(logger.log_dir)
+    written = (log_dir / "metrics.csv").read_text()
+    _fill(tiny_disk)
+    logger.log_metrics({"train/loss": 0.5, "val/score": 2.0, "note": "x" * 8192}, step=1)  # a new column
+    with pytest.raises(DiskError, match=rf"^writing metrics.csv: the disk of {log_dir} is full, "):
+        logger.save()
+    assert (log_dir / "metrics.csv").read_text() == written and sorted(p.name for p in log_dir.iterdir()) == ["metrics.csv"]
+    (tiny_disk / "filler").unlink()
+    logger.finalize("success")  # the pending rows were kept
+    assert (log_dir / "metrics.csv").read_text().splitlines()[0] == "note,step,train/loss,val/score"
+
+
+def test_a_full_disk_while_training_logs_is_one_line_and_keeps_the_checkpoints(tmp_path, monkeypatch, capsys):
+    """The disk fills during training: the CSV log's third save fails (ENOSPC) after last.ckpt is written."""
+    import csv
+
+    import src.train
+    from registration_helpers import TINY, compose_config
+
+    run = tmp_path / "run"
+    cfg = compose_config(*TINY, f"data.cache_root={tmp_path / 'cache'}", f"output_dir={run}", "+exp=unseen_shapes",
+                         "trainer.max_steps=6", "test_after_fit=false", "trainer.log_every_n_steps=1",
+                         "trainer.limit_val_batches=1", "trainer.val_check_interval=2",
+                         "trainer.check_val_every_n_epoch=null", "callbacks.periodic_checkpoint.train_time_interval=null",
+                         "+callbacks.periodic_checkpoint.every_n_train_steps=1")
+    saves, writerows = [], csv.DictWriter.writerows
+
+    def filling(self, rows):
+        saves.append(1)
+        if len(saves) > 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return writerows(self, rows)
+
+    monkeypatch.setattr(csv.DictWriter, "writerows", filling)
+    with pytest.raises(SystemExit) as info:
+        src.train.main.__wrapped__(cfg)
+    log_dir = run / "csv" / "version_0"
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: writing metrics.csv: the disk of {log_dir} is full"), err
+    monkeypatch.undo()
+    assert len(list(csv.DictReader((log_dir / "metrics.csv").open()))) >= 2  # the rows written before
+    assert not list(log_dir.glob(".*.tmp")) and (run / "failure.json").is_file()
+    checkpoint = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert checkpoint["global_step"] >= 1

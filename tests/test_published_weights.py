@@ -202,6 +202,7 @@ def test_src_eval_evaluates_published_weights(tmp_path):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose("config", overrides=[
             "model=dcp", "+exp=dcp_protocol", "weights=official:dcp_v1", "data=synthetic", "model_scale=0.0625",
+            "data.build.num_points=1024",  # the protocol's 1,024-point clouds (synthetic clouds are whole samplings)
             "data.build.num_train_per_category=2", "data.build.num_test_per_category=1", "data.build.num_samplings=3",
             "data.eval_batch_size=2", "data.num_workers=0", "data.pin_memory=false", "trainer.accelerator=cpu",
             "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false",

@@ -17,13 +17,11 @@ from src.data.categories import AXISYMMETRIC_CATEGORIES
 from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
 from src.data.pipelines import build_pair_transforms
+from src.data.transforms import NORMALS
 from src.errors import ConfigError, DatasetError
 from src.signals import loader_worker_init
 
 STAGES = ("train", "val", "test")
-NORMALS = ("none", "cache")
-"""``data.normals``: ``none`` (points only) or ``cache`` (the cache's normals travel with the points
-as ``normals_src``/``normals_ref``; see :mod:`src.data.transforms`)."""
 
 
 def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmetric: bool) -> list[str]:
@@ -72,6 +70,26 @@ def select_shapes(
     if repeat < 1:
         raise ConfigError(f"data.splits repeat must be >= 1, got {repeat}")
     return spec["split"], np.tile(indices, repeat)
+
+
+#: Layouts whose clouds are whole samplings of a shape (``data.pair.num_points`` picks no points there).
+_WHOLE_SAMPLINGS = ("independent_samplings", "single_sampling")
+
+
+def check_pair_layout(pair: Mapping[str, Any], pair_sampling: str, cloud_points: int, dataset: str) -> None:
+    """ConfigError for ``data.pair.num_points`` on a cache layout that cannot honour it: each cloud is a whole
+    sampling of ``cloud_points`` points (meshes, synthetic, PointNet h5); only the PointNet++ resampled layout
+    (``disjoint_subsets``) picks ``num_points`` of a shape's points. The sampling's own size passes."""
+    wanted = pair.get("num_points")
+    if pair_sampling not in _WHOLE_SAMPLINGS or wanted is None or wanted == cloud_points:
+        return
+    build = (f"data.build.num_points={wanted}" if dataset == "synthetic"
+             else f"python -m src.data.prepare {dataset} --source PATH --num-points {wanted}")
+    raise ConfigError(
+        f"data.pair.num_points={wanted} cannot take effect on the {dataset} cache (layout {pair_sampling}): each "
+        f"cloud is a whole sampling of {cloud_points} points; sample {wanted} points per sampling ({build}), "
+        f"or use data.pair.num_points={cloud_points}"
+    )
 
 
 class RegistrationDataModule(L.LightningDataModule):
@@ -131,6 +149,7 @@ class RegistrationDataModule(L.LightningDataModule):
                 continue
             split, indices = select_shapes(self.cache, self.splits[name], self.remove_axisymmetric, self.splits)
             data = self.cache.split(split)
+            check_pair_layout(self.pair, self.cache.pair_sampling, data.points.shape[2], self.dataset)
             stream = TRAIN_STREAM if name == "train" else EVAL_STREAM
             self.datasets[name] = PairDataset(data.points, data.labels, indices, transforms, self.seed, stream,
                                               normals=self._normals_of(data))

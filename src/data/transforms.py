@@ -34,6 +34,9 @@ PARTIAL_MANNERS = ("prnet", "rpmnet", "none")
 PAIR_SAMPLINGS = ("independent_samplings", "single_sampling", "disjoint_subsets")
 PERTURBATIONS = ("euler", "twist")
 CLOUDS = ("src", "ref")
+NORMALS = ("none", "cache")
+"""``data.normals``: ``none`` (points only) or ``cache`` (the cache's normals travel with the points
+as ``normals_src``/``normals_ref``)."""
 
 
 def move_cloud(sample: Sample, cloud: str, transform: np.ndarray) -> None:
