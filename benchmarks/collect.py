@@ -39,6 +39,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from baselines.methods import method_of_network
+from src.metrics import SUMMARY_METRICS
 
 MARKERS = (".hydra/overrides.yaml", "config_resolved.yaml", "metrics.json", "failure.json")
 STANDARD_COLUMNS: dict[str, str] = {
@@ -54,7 +55,6 @@ STANDARD_COLUMNS: dict[str, str] = {
     "seed": "seed",
 }
 LEADING = ["sweep", "job", "method", "network", "experiment", *STANDARD_COLUMNS]
-SUMMARY_METRICS = ("Error(R)", "Error(t)", "RMSE(R)", "RMSE(t)")
 
 
 @dataclass

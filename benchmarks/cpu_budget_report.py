@@ -19,8 +19,9 @@ import pandas as pd
 from benchmarks.cpu_budget import METHODS, Stage
 from src.errors import ConfigError, exit_code_of
 from src.reporting import read_csv_logs
+from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
-CURVE_COLUMNS = {"time/cpu_hours": "cpu_hours", "val/Error(R)": "Error(R)", "val/Error(t)": "Error(t)"}
+CURVE_COLUMNS = {"time/cpu_hours": "cpu_hours", VAL_ERROR_R: ERROR_R, VAL_ERROR_T: ERROR_T}
 
 
 def _stage_cpu_hours(logs: pd.DataFrame) -> float:
@@ -35,8 +36,8 @@ def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
         logs = read_csv_logs(method_dir / stage.name)
         if logs.empty:
             break
-        if "val/Error(R)" in logs:
-            rows = logs.dropna(subset=["val/Error(R)"])[["step", *CURVE_COLUMNS]].rename(columns=CURVE_COLUMNS)
+        if VAL_ERROR_R in logs:
+            rows = logs.dropna(subset=[VAL_ERROR_R])[["step", *CURVE_COLUMNS]].rename(columns=CURVE_COLUMNS)
             curve = rows.assign(cpu_hours=rows["cpu_hours"] + offset)
         offset += _stage_cpu_hours(logs)
     return plan, curve.assign(method=method_dir.name)
@@ -71,11 +72,11 @@ def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
         row["steps"] = " + ".join(str(n) for n in steps)
         row["pairs seen"] = sum(n * s.batch for n, s in zip(steps, stages))
     if not curve.empty:
-        best = curve.loc[curve["Error(R)"].idxmin()]
-        row.update({"last val Error(R)": curve["Error(R)"].iloc[-1], "last val Error(t)": curve["Error(t)"].iloc[-1],
-                    "best val Error(R)": best["Error(R)"], "best val Error(t)": best["Error(t)"]})
+        best = curve.loc[curve[ERROR_R].idxmin()]
+        row.update({"last val Error(R)": curve[ERROR_R].iloc[-1], "last val Error(t)": curve[ERROR_T].iloc[-1],
+                    "best val Error(R)": best[ERROR_R], "best val Error(t)": best[ERROR_T]})
     test = _test_metrics(method_dir / last.name)
-    row.update({"test Error(R)": test.get("Error(R)"), "test Error(t)": test.get("Error(t)"),
+    row.update({"test Error(R)": test.get(ERROR_R), "test Error(t)": test.get(ERROR_T),
                 "done": (method_dir / last.name / "done.json").is_file()})
     return row
 
@@ -102,7 +103,7 @@ def plot(curves: pd.DataFrame, out: Path, budget_h: float) -> None:
 
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     for method, group in curves.groupby("method", sort=False):
-        ax.plot(group["cpu_hours"], group["Error(R)"], marker="o", markersize=2.5, label=method)
+        ax.plot(group["cpu_hours"], group[ERROR_R], marker="o", markersize=2.5, label=method)
     ax.axvline(budget_h, color="grey", linestyle=":", linewidth=1)
     ax.set(xlabel="training CPU hours (one thread)", ylabel="validation Error(R) [deg], lower is better", yscale="log",
            title="Every learned method on real airplanes (TS, PRNet manner, clean), one CPU budget")

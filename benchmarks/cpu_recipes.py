@@ -33,6 +33,7 @@ from pathlib import Path
 import pandas as pd
 
 from src.errors import ConfigError, exit_code_of
+from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
 #: What every recipe shares: the real-airplane protocol with noise, one thread, in-process data.
 COMMON = [
@@ -176,16 +177,16 @@ def curves(roots: list[Path]) -> pd.DataFrame:
     for run_dir in run_dirs:
         label = run_dir.name if names.count(run_dir.name) == 1 else f"{run_dir.name} ({run_dir.parent.name})"
         logs = read_csv_logs(run_dir)
-        if logs.empty or "val/Error(R)" not in logs:
+        if logs.empty or VAL_ERROR_R not in logs:
             continue
-        val = logs.dropna(subset=["val/Error(R)"])[["step", "time/cpu_hours", "val/Error(R)", "val/Error(t)"]]
+        val = logs.dropna(subset=[VAL_ERROR_R])[["step", "time/cpu_hours", VAL_ERROR_R, VAL_ERROR_T]]
         code = json.loads((run_dir / "plan.json").read_text()).get("code", "unknown")
         frames.append(val.assign(recipe=label, code=code))
     if not frames:
         where = ", ".join(map(str, roots))
         raise ConfigError(f"no recipe run with validation results under {where}: run `python -m benchmarks.cpu_recipes run` first")
     frame = pd.concat(frames, ignore_index=True)
-    return frame.rename(columns={"time/cpu_hours": "cpu_hours", "val/Error(R)": "Error(R)", "val/Error(t)": "Error(t)"})
+    return frame.rename(columns={"time/cpu_hours": "cpu_hours", VAL_ERROR_R: ERROR_R, VAL_ERROR_T: ERROR_T})
 
 
 def summary(frame: pd.DataFrame) -> pd.DataFrame:
@@ -193,11 +194,11 @@ def summary(frame: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for name, group in frame.groupby("recipe", sort=False):
         group = group.sort_values("step")
-        best = group.loc[group["Error(R)"].idxmin()]
+        best = group.loc[group[ERROR_R].idxmin()]
         rows.append({"recipe": name, "code": group["code"].iloc[0], "steps": int(group["step"].max()) + 1,
                      "CPU h": group["cpu_hours"].max(),
-                     "last Error(R)": group["Error(R)"].iloc[-1], "last Error(t)": group["Error(t)"].iloc[-1],
-                     "best Error(R)": best["Error(R)"], "best at CPU h": best["cpu_hours"]})
+                     "last Error(R)": group[ERROR_R].iloc[-1], "last Error(t)": group[ERROR_T].iloc[-1],
+                     "best Error(R)": best[ERROR_R], "best at CPU h": best["cpu_hours"]})
     return pd.DataFrame(rows).sort_values("last Error(R)")
 
 
@@ -216,7 +217,7 @@ def report(roots: list[Path], out: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for name, group in frame.groupby("recipe", sort=False):
         group = group.sort_values("step")
-        ax.plot(group["cpu_hours"], group["Error(R)"], marker="o", markersize=2.5, label=name)
+        ax.plot(group["cpu_hours"], group[ERROR_R], marker="o", markersize=2.5, label=name)
     ax.set(xlabel="CPU hours (one thread)", ylabel="validation Error(R) [deg]", yscale="log",
            title="OMNet recipes on real airplanes (TS, PRNet manner, σ = 0.01)")
     ax.grid(True, which="both", alpha=0.3)

@@ -48,8 +48,9 @@ from src.compose import compose_experiment
 from src.errors import CheckpointError, ConfigError, exit_code_of
 from src.pair_sets import LOADER_KEYS
 from src.paths import CONF_DIR
+from src.metrics import ERROR_R, ERROR_T, RMSE_R
 
-METRICS = ("Error(R)", "Error(t)", "RMSE(R)")
+METRICS = (ERROR_R, ERROR_T, RMSE_R)
 #: Data keys that change how the test set is loaded, not which pairs it holds (the cache folder does count).
 LOADER_ONLY = tuple(k for k in LOADER_KEYS if k != "cache_root")
 TABLE_NAME = "demo"
@@ -276,7 +277,7 @@ def pipeline_check_note(tidy: Any, mine: Entry, run: Run, card: dict[str, Any] |
     """When the run's own model does not beat the identity's Error(R): what the run is (a pipeline check) and
     what a useful one needs, from the shipped model's card: its budget and its validation curve, with the
     step at which it first beat the identity's Error(R) on these pairs. None when the run beats the identity."""
-    errors = tidy[tidy["metric"] == "Error(R)"].set_index("method")["value"]
+    errors = tidy[tidy["metric"] == ERROR_R].set_index("method")["value"]
     identity, own = float(errors[IDENTITY_LABEL]), float(errors[mine.label])
     if own < identity:
         return None
@@ -286,7 +287,7 @@ def pipeline_check_note(tidy: Any, mine: Entry, run: Run, card: dict[str, Any] |
     if card is None:
         return note
     training = card["training"]
-    curve = [(point["step"] + LOGGED_STEP_OFFSET, point["Error(R)"]) for point in training.get("validation", [])]
+    curve = [(point["step"] + LOGGED_STEP_OFFSET, point[ERROR_R]) for point in training.get("validation", [])]
     first = next((step for step, error in curve if error < identity), None)
     beat = (f"; its validation Error(R) first fell below {identity:.1f}° after {first:,} steps" if first else "")
     shown = ", ".join(f"{error:.1f}° at {step:,}" for step, error in curve)

@@ -42,7 +42,7 @@ from src.data.scan_pairs import ScanPairDataset  # noqa: E402
 from src.data.scans import apply_transform  # noqa: E402
 from src.errors import ConfigError, UserError  # noqa: E402
 from src.cloud_panels import OVERLAP, REFERENCE, REST, SOURCE, centre, half_size, panel  # noqa: E402
-from src.metrics import pair_errors  # noqa: E402
+from src.metrics import ERROR_R, pair_errors  # noqa: E402
 
 PICKS = ("worst", "median", "best")
 PANEL_INCHES = 1.7
@@ -220,7 +220,7 @@ def _chosen_pairs(args: argparse.Namespace, test_set) -> dict[int, str]:
     rows = rows[rows["method"] == args.by]
     if rows.empty:
         raise ConfigError(f"{args.grid} has no {args.by} cell on {test_set.key}: choose --by among its methods")
-    picked = pick_pairs(dict(zip(rows["pair"], rows["Error(R)"])), [p.strip() for p in args.pick.split(",")])
+    picked = pick_pairs(dict(zip(rows["pair"], rows[ERROR_R])), [p.strip() for p in args.pick.split(",")])
     return {i: f" ({pick} Error(R) of {display_name(args.by)} in the grid)" for i, pick in picked.items()}
 
 

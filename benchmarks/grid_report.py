@@ -9,9 +9,10 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from benchmarks.grid_run import GridResult
+from src.metrics import SUMMARY_METRICS
 
 
-def summary_table(tidy, metrics: Sequence[str] = ("Error(R)", "Error(t)", "RMSE(R)", "RMSE(t)")) -> str:
+def summary_table(tidy, metrics: Sequence[str] = SUMMARY_METRICS) -> str:
     """A compact plain-text view: one row per cell, a few metrics, failures and time per pair."""
     import pandas as pd
 

@@ -19,10 +19,10 @@ from baselines.methods import display_name
 from benchmarks.grid_plan import Cell, plan
 from src.config import euler_seq_for
 from src.files import write_atomic
+from src.metrics import CHAMFER, ERROR_R, ERROR_T, MAE_R, MAE_T, PAIR_ERRORS
 
 TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
                 "value", "n_pairs", "n_failed", "seconds", "seconds_per_pair", "cell")
-PAIR_ERROR_COLUMNS = ("Error(R)", "Error(t)", "MAE(R)", "MAE(t)", "chamfer")
 
 
 def cell_metrics(
@@ -36,7 +36,7 @@ def cell_metrics(
     from src.metrics import RegistrationMetrics, chamfer_distance, pair_errors
 
     metric = RegistrationMetrics(euler_seq)
-    per_pair: dict[str, list[float]] = {name: [] for name in PAIR_ERROR_COLUMNS}
+    per_pair: dict[str, list[float]] = {name: [] for name in PAIR_ERRORS}
     for result, (src, ref, gt) in zip(results, pairs):
         pred_t = torch.tensor(np.asarray(result.transform), dtype=torch.float64)[None]
         gt_t = torch.as_tensor(gt, dtype=torch.float32)[None]
@@ -44,12 +44,12 @@ def cell_metrics(
         ref_t = torch.as_tensor(ref, dtype=torch.float32)[None]
         metric.update(pred_t, gt_t, src_t, ref_t)
         err = pair_errors(pred_t, gt_t, euler_seq)
-        per_pair["Error(R)"].append(float(err["rot_deg"][0]))
-        per_pair["Error(t)"].append(float(err["trans_norm"][0]))
-        per_pair["MAE(R)"].append(float(err["euler_err"][0].abs().mean()))
-        per_pair["MAE(t)"].append(float(err["trans_err"][0].abs().mean()))
+        per_pair[ERROR_R].append(float(err["rot_deg"][0]))
+        per_pair[ERROR_T].append(float(err["trans_norm"][0]))
+        per_pair[MAE_R].append(float(err["euler_err"][0].abs().mean()))
+        per_pair[MAE_T].append(float(err["trans_err"][0].abs().mean()))
         moved = se3_apply(pred_t.float(), src_t)
-        per_pair["chamfer"].append(float(chamfer_distance(moved, ref_t)[0]))
+        per_pair[CHAMFER].append(float(chamfer_distance(moved, ref_t)[0]))
     return metric.compute(), {k: np.asarray(v) for k, v in per_pair.items()}
 
 
@@ -99,7 +99,7 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
         "seconds": [float(r.seconds) for r in results],
         "failed": [bool(r.failed) for r in results],
         "reason": [r.reason for r in results],
-        **{name: errors[name] for name in PAIR_ERROR_COLUMNS},
+        **{name: errors[name] for name in PAIR_ERRORS},
     })
     cell.folder.mkdir(parents=True, exist_ok=True)
     write_atomic(cell.pairs_path, lambda p: frame.to_parquet(p, index=False))

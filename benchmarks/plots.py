@@ -41,7 +41,7 @@ from baselines.methods import display_name  # noqa: E402
 from benchmarks.paper import attach_paper, canonical_experiment, default_paper_dir, load_paper_tables  # noqa: E402
 from benchmarks.tables import read_inputs  # noqa: E402
 from src.errors import UserError  # noqa: E402
-from src.metrics import SUCCESS_THRESHOLDS  # noqa: E402
+from src.metrics import ERROR_R, ERROR_T, MAE_R, MAE_T, RMSE_R, RMSE_T, SUCCESS_THRESHOLDS  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -55,12 +55,12 @@ class Figure:
 
 
 FIGURES = {
-    "noise": Figure("error_vs_noise", "noise_sigma", r"noise $\sigma$", ("Error(R)", "Error(t)"),
+    "noise": Figure("error_vs_noise", "noise_sigma", r"noise $\sigma$", (ERROR_R, ERROR_T),
                     "Errors under different noise levels"),
-    "overlap": Figure("error_vs_overlap", "overlap_ratio", "overlap ratio", ("Error(R)", "Error(t)"),
+    "overlap": Figure("error_vs_overlap", "overlap_ratio", "overlap ratio", (ERROR_R, ERROR_T),
                       "Isotropic errors of different overlapping ratios", reverse_x=True),
     "iterations": Figure("error_vs_iterations", "num_iters", "iterations N",
-                         ("RMSE(R)", "MAE(R)", "Error(R)", "RMSE(t)", "MAE(t)", "Error(t)"),
+                         (RMSE_R, MAE_R, ERROR_R, RMSE_T, MAE_T, ERROR_T),
                          "Anisotropic and isotropic errors over registration iterations"),
 }
 NO_PAPER_NUMBERS = "paper: no published numbers for this figure"
@@ -232,11 +232,11 @@ def overlap_table(rows: pd.DataFrame, bins: Sequence[float] = OVERLAP_BINS) -> s
     Error(R) in degrees, the mean Error(t) and the fraction of pairs under (5°, 0.05); one table each."""
     max_deg, max_t = SUCCESS_THRESHOLDS[-1]
     data = rows.assign(bin=overlap_bins(rows["overlap"], bins),
-                       success=(rows["Error(R)"] < max_deg) & (rows["Error(t)"] < max_t))
+                       success=(rows[ERROR_R] < max_deg) & (rows[ERROR_T] < max_t))
     columns = [*data["bin"].cat.categories, "all"]
     methods = list(dict.fromkeys(data["label"]))
     blocks = []
-    for metric, title, fmt in (("Error(R)", "Error(R), mean (degrees)", "{:.2f}"), ("Error(t)", "Error(t), mean", "{:.3f}"),
+    for metric, title, fmt in ((ERROR_R, "Error(R), mean (degrees)", "{:.2f}"), (ERROR_T, "Error(t), mean", "{:.3f}"),
                                ("success", f"success: Error(R) < {max_deg:g}° and Error(t) < {max_t:g}", "{:.0%}")):
         lines = [f"**{title}**", "", "| Method | pairs | " + " | ".join(columns) + " |",
                  "|:---|:---|" + "---:|" * len(columns)]
@@ -259,9 +259,9 @@ def plot_error_vs_overlap(rows: pd.DataFrame, path: Path, title: str, bins: Sequ
     low = max(float(rows["overlap"].min()) - 0.02, 0.0)
     for i, (label, own) in enumerate(rows.groupby("label", sort=False)):
         color = colors[i % len(colors)]
-        ax.scatter(own["overlap"], own["Error(R)"].clip(lower=1e-2), s=16, alpha=0.75, color=color,
+        ax.scatter(own["overlap"], own[ERROR_R].clip(lower=1e-2), s=16, alpha=0.75, color=color,
                    marker=markers[i % len(markers)], label=f"{label} ({len(own)} pairs)")
-        medians = own.groupby(overlap_bins(own["overlap"], bins), observed=False)["Error(R)"].median()
+        medians = own.groupby(overlap_bins(own["overlap"], bins), observed=False)[ERROR_R].median()
         for lo, hi, median in zip(edges[:-1], edges[1:], medians):
             if not math.isnan(median):
                 ax.hlines(max(median, 1e-2), max(lo, low), hi, color=color, lw=2, alpha=0.8)

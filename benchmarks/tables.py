@@ -45,9 +45,9 @@ from benchmarks.paper import (
     load_paper_tables,
     method_key,
 )
+from src.metrics import CHAMFER, ERROR_R, MAE_R, PAPER_METRICS, RMSE_R, SCORE, SUCCESS_NAMES
 
-PAPER_METRICS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "Error(R)", "Error(t)")
-HIGHER_IS_BETTER = ("success(1deg,0.01)", "success(5deg,0.05)")
+HIGHER_IS_BETTER = SUCCESS_NAMES
 REQUIRED = ("method", "experiment", "sampling", "metric", "value")
 LAYOUTS = ("table1", "table2", "table3")
 EXPERIMENT_ORDER = ("unseen_shapes", "unseen_categories", "unseen_shapes_noise", "unseen_categories_noise")
@@ -91,7 +91,7 @@ class Table:
 
 
 #: Units shown by :attr:`Table.header_units` (rotations in degrees; translations in the shapes' own units).
-METRIC_UNITS = {"RMSE(R)": "°", "MAE(R)": "°", "Error(R)": "°", "ms/pair": "ms"}
+METRIC_UNITS = {RMSE_R: "°", MAE_R: "°", ERROR_R: "°", "ms/pair": "ms"}
 
 
 def _direction(metric: str) -> str:
@@ -99,7 +99,7 @@ def _direction(metric: str) -> str:
 
 
 def decimals(metric: str) -> int:
-    return 4 if metric.endswith("(t)") or metric in ("chamfer", "score") else 3
+    return 4 if metric.endswith("(t)") or metric in (CHAMFER, SCORE) else 3
 
 
 def fmt(value: float | None, metric: str) -> str:

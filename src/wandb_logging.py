@@ -23,11 +23,12 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from src.errors import ConfigError
+from src.metrics import PAIR_ERRORS
 
 #: RGB colours of the clouds of an Object3D: source, reference, aligned source; an OMNet mask's kept / dropped points.
 COLOURS = {"source": (228, 26, 28), "reference": (77, 175, 74), "aligned": (55, 126, 184),
            "kept": (255, 127, 0), "dropped": (153, 153, 153)}
-PAIR_COLUMNS = ["pair", "overlap", "Error(R)", "Error(t)", "MAE(R)", "MAE(t)", "seconds"]
+PAIR_COLUMNS = ["pair", "overlap", *PAIR_ERRORS[:4], "seconds"]
 #: Radius of the overlap fraction, in median point spacings of the reference (as the scan pairs' overlap).
 OVERLAP_SPACINGS = 2.0
 

@@ -18,7 +18,7 @@ from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLR
 from torchmetrics import MeanMetric
 
 from src.errors import ConfigError
-from src.metrics import RegistrationMetrics
+from src.metrics import SCORE, RegistrationMetrics
 from src.models.base import check_network
 
 #: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
@@ -216,7 +216,7 @@ class RegistrationModule(L.LightningModule):
     def on_validation_epoch_end(self) -> None:
         values = self.val_metrics.compute()
         self.log_dict({f"val/{k}": v for k, v in values.items()}, prog_bar=False)
-        self.log("val_score", values["score"], prog_bar=True, logger=False)
+        self.log("val_score", values[SCORE], prog_bar=True, logger=False)
         self.val_metrics.reset()
         self._step_plateau_per_validation({"val/loss": self.eval_losses["val"].compute(),
                                            **{f"val/{k}": v for k, v in values.items()}})

@@ -24,6 +24,7 @@ import yaml
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
 from src.reporting import read_csv_logs
+from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
 SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
@@ -58,11 +59,11 @@ def _sha256(path: Path) -> str:
 def _validation_curve(run_dir: Path) -> list[dict[str, float]]:
     """Validation Error(R)/Error(t) per validated step, from the CSV logger."""
     frame = read_csv_logs(run_dir)
-    if "val/Error(R)" not in frame:
+    if VAL_ERROR_R not in frame:
         return []
-    rows = frame.dropna(subset=["val/Error(R)"])
-    return [{"step": int(r["step"]), "Error(R)": round(float(r["val/Error(R)"]), 3),
-             "Error(t)": round(float(r["val/Error(t)"]), 4)} for _, r in rows.iterrows()]
+    rows = frame.dropna(subset=[VAL_ERROR_R])
+    return [{"step": int(r["step"]), ERROR_R: round(float(r[VAL_ERROR_R]), 3),
+             ERROR_T: round(float(r[VAL_ERROR_T]), 4)} for _, r in rows.iterrows()]
 
 
 def _overrides(run_dir: Path) -> list[str] | None:
