@@ -47,8 +47,8 @@ from benchmarks.paper import EXPERIMENT_LABELS, canonical_experiment
 from src.compose import compose_experiment
 from src.errors import CheckpointError, ConfigError, exit_code_of
 from src.pair_sets import LOADER_KEYS
-from src.paths import CONF_DIR
 from src.metrics import ERROR_R, ERROR_T, RMSE_R
+from src.paths import CONF_DIR, SHIPPED_DIR
 
 METRICS = (ERROR_R, ERROR_T, RMSE_R)
 #: Data keys that change how the test set is loaded, not which pairs it holds (the cache folder does count).
@@ -407,7 +407,6 @@ def write_tables(table: tables.Table, run_dir: Path) -> list[Path]:
 
 def run_demo(run_dir: Path, overrides: Sequence[str] = (), shipped_dir: Path | None = None) -> list[Path]:
     """The demo for the run in ``run_dir``: evaluate, print, write; returns the files written."""
-    from src.models.pretrained import SHIPPED_DIR
 
     run = load_run(run_dir)
     cfg = grid_config(run, overrides)

@@ -8,6 +8,7 @@ import warnings
 from omegaconf import OmegaConf
 
 from src.errors import ConfigError
+from src.paths import shipped_checkpoint_path
 
 EULER_SEQ_BY_PARTIAL = {"prnet": "zyx", "rpmnet": "xyz", "none": "zyx"}
 
@@ -43,6 +44,8 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("euler_seq", euler_seq_for)
     if not OmegaConf.has_resolver("add"):
         OmegaConf.register_new_resolver("add", add_ints)
+    if not OmegaConf.has_resolver("shipped"):
+        OmegaConf.register_new_resolver("shipped", shipped_checkpoint_path)
     if not OmegaConf.has_resolver("loader_workers"):
         OmegaConf.register_new_resolver("loader_workers", loader_workers)
     if not OmegaConf.has_resolver("wandb_group"):

@@ -12,6 +12,13 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: The Hydra configs (``conf/config.yaml`` and its groups).
 CONF_DIR = REPO_ROOT / "conf"
+#: Shipped checkpoints (``<name>.ckpt``) and their cards (``<name>.json``).
+SHIPPED_DIR = REPO_ROOT / "checkpoints"
+
+
+def shipped_checkpoint_path(name: str) -> str:
+    """``${shipped:<name>}``: the path of ``checkpoints/<name>.ckpt``, wherever the command runs."""
+    return str(SHIPPED_DIR / f"{name}.ckpt")
 
 
 def shared_dir() -> Path:

@@ -79,3 +79,13 @@ def test_eval_without_ckpt_path_uses_the_shipped_checkpoint(tmp_path):
     assert saved["checkpoint"] == str(shipped) and saved["metrics"]["Error(R)"] == pytest.approx(metrics["Error(R)"])
     with pytest.raises(CheckpointError, match="no shipped checkpoint for task=gaussian_noise"):
         evaluate(tiny_config(tmp_path, "+exp=gaussian_noise"))
+
+
+def test_shipped_resolver_names_a_checkpoint_wherever_the_command_runs(tmp_path, monkeypatch):
+    from omegaconf import OmegaConf
+
+    from src.config import register_resolvers
+
+    register_resolvers()
+    monkeypatch.chdir(tmp_path)
+    assert OmegaConf.create({"c": "${shipped:dcp_real_airplane_ts_prnet}"}).c == str(SHIPPED_DIR / "dcp_real_airplane_ts_prnet.ckpt")

@@ -44,6 +44,7 @@ from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
 from src.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
+from src.paths import SHIPPED_DIR
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "read_checkpoint_network", "run_batches"]
 
@@ -103,8 +104,6 @@ def read_checkpoint_network(path: str | Path) -> str:
 def shipped_checkpoint(method: str, target: str, directory: Path | None = None) -> Path:
     """The shipped checkpoint (``checkpoints/<name>.ckpt`` with its ``.json`` card) of a network: one trained
     on real data if any, else the first by name; CheckpointError (naming the fix) when none is shipped."""
-    from src.models.pretrained import SHIPPED_DIR  # here: keeps `import baselines` free of torch
-
     directory = SHIPPED_DIR if directory is None else directory
     cards = {path.with_suffix(".ckpt"): json.loads(path.read_text()) for path in sorted(directory.glob("*.json"))}
     mine = [path for path, card in cards.items() if card["network"]["_target_"] == target and path.is_file()]

@@ -23,10 +23,10 @@ import yaml
 
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
+from src.paths import SHIPPED_DIR
 from src.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
-SHIPPED_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
 IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
 
 
