@@ -43,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from baselines.methods import Method, display_name, get_method, method_of_network
 from benchmarks import tables
+from benchmarks.grid_plan import GRID_CONFIG
 from benchmarks.paper import EXPERIMENT_LABELS, canonical_experiment
 from src.compose import compose_experiment
 from src.errors import CheckpointError, ConfigError, exit_code_of
@@ -307,7 +308,7 @@ def grid_config(run: Run, overrides: Sequence[str]) -> DictConfig:
 
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose("benchmark_grid", overrides=["+benchmark=demo", *overrides, f"data={run.cfg.data.dataset}"])
+            cfg = compose(GRID_CONFIG, overrides=["+benchmark=demo", *overrides, f"data={run.cfg.data.dataset}"])
     except HydraException as err:
         raise ConfigError(f"bad grid override in {list(overrides)}: {str(err).strip().splitlines()[0]}") from None
     cfg.benchmark.experiments = [run.experiment]

@@ -14,7 +14,7 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from baselines.methods import display_name  # re-exported for benchmarks.speed, until it imports baselines.methods
-from benchmarks.grid_plan import Cell, plan
+from benchmarks.grid_plan import GRID_CONFIG, Cell, plan
 from benchmarks.grid_report import report
 from benchmarks.grid_run import GridResult, run_grid
 from src.cli import hydra_command
@@ -27,13 +27,13 @@ __all__ = ["Cell", "GridResult", "display_name", "main", "plan", "report", "run_
 def _run(cfg: DictConfig) -> None:
     from src.validation import check_top_level_keys  # (torch: imported where used, see benchmarks.grid_plan)
 
-    check_top_level_keys(cfg, "benchmark_grid")  # a typo'd or unknown top-level key: nothing would read it
+    check_top_level_keys(cfg, GRID_CONFIG)  # a typo'd or unknown top-level key: nothing would read it
     result = run_grid(cfg)
     report(result, cfg)
     log_grid(cfg, result.tidy)  # wandb.enabled=true: the tidy table as a wandb.Table (src/wandb_logging.py)
 
 
-main = hydra_command(_run, CONF_DIR, "benchmark_grid")  # one `error: ...` line and exit 2 for bad input
+main = hydra_command(_run, CONF_DIR, GRID_CONFIG)  # one `error: ...` line and exit 2 for bad input
 
 
 if __name__ == "__main__":

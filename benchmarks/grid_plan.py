@@ -45,7 +45,9 @@ PARTIALS = ("prnet", "rpmnet", "none")
 
 # The app's primary config only pulls in conf/benchmark/default.yaml, so that `+benchmark=<name>`
 # (conf/benchmark/<name>.yaml, package `benchmark`) can be appended on the command line.
-ConfigStore.instance().store(name="benchmark_grid", node={
+#: The grid's primary config, registered here (compose it by this name, imported from here).
+GRID_CONFIG = "benchmark_grid"
+ConfigStore.instance().store(name=GRID_CONFIG, node={
     "defaults": ["_self_", "benchmark/default"],
     "benchmark": {"methods": default_grid_methods()},
     "method_options": {method.key: method.grid_options for method in METHODS},

@@ -19,7 +19,7 @@ import torch
 
 from baselines import get_registrator, run_pairs
 from baselines.learned.adapter import run_batches
-from benchmarks.grid import build_test_set
+from src.pair_sets import build_test_set
 from src.metrics import RegistrationMetrics
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from benchmarks.grid import CONF_DIR, run_grid
+from benchmarks.grid import CONF_DIR, GRID_CONFIG, run_grid
 from benchmarks.tables import build_table, to_latex, to_markdown
 
 parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -25,7 +25,7 @@ parser.add_argument("--out", type=Path, default=Path("outputs/grid/example"), he
 args = parser.parse_args()
 
 with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-    cfg = compose("benchmark_grid", overrides=[
+    cfg = compose(GRID_CONFIG, overrides=[
         f"benchmark.methods=[{args.methods}]", "benchmark.experiments=[unseen_shapes]", "benchmark.samplings=[os,ts]",
         "benchmark.partials=[prnet]", f"benchmark.max_pairs={args.pairs}", "workers=0", "progress=false",
         "paper=false", f"output_dir={args.out.resolve()}"])
