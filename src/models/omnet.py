@@ -171,11 +171,8 @@ class OMNetIteration(nn.Module):
         fusion: bool = True,
         connection: bool = True,
         fusion_masking: str = "official",
-        mask_ce_reduction: str = "per_cloud",
     ) -> None:
         super().__init__()
-        if mask_ce_reduction not in MASK_CE_REDUCTIONS:
-            raise ValueError(f"mask_ce_reduction must be one of {MASK_CE_REDUCTIONS}, got {mask_ce_reduction!r}")
         w = partial(scaled, width=width, minimum=MIN_CHANNELS)
         self.mask_module, self.fusion_enabled = mask_module, fusion
         self.fusion_masking = fusion_masking
