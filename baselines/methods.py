@@ -5,8 +5,9 @@ for a learned one), display name, kind, what registers (a classical method's laz
 a learned method's network ``_target_``), its place in the paper's tables, its citation and aliases.
 Derived from :data:`METHODS`: the registry of :mod:`baselines.registry`, the learned adapters of
 :mod:`baselines.learned.adapter`, the display names and the row order of :mod:`benchmarks.tables`,
-the matching with the paper's tables (:func:`benchmarks.paper.method_key`), and the grid's default
-method list and ``method_options`` (:mod:`benchmarks.grid_plan`). Published weights name their
+the matching with the paper's tables (:func:`benchmarks.paper.method_key`), the grid's default
+method list and ``method_options`` (:mod:`benchmarks.grid_plan`), and the speed tables' default methods
+and column order (:mod:`benchmarks.speed`). Published weights name their
 method (``Published.method`` in :mod:`baselines.learned.published`).
 
 Adding a method means adding its record here (and its code); ``tests/test_methods.py`` checks that
@@ -54,6 +55,8 @@ class Method:
             Go-ICP and Symmetric ICP (not in it) after FGR as in Table 1 (None: not in them).
         ours: the paper's own method: last in every table, after methods the paper does not have.
         default_grid: part of the grid's default method list (``benchmark.methods``).
+        slow: seconds a pair or more (a global search, a dense probabilistic fit): left out of the speed
+            tables' default methods unless named (the paper's speed table has no Go-ICP).
     """
 
     key: str
@@ -68,6 +71,7 @@ class Method:
     speed: int | None = None
     ours: bool = False
     default_grid: bool = False
+    slow: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -99,7 +103,7 @@ METHODS: tuple[Method, ...] = (
            paper="Zhou, Park & Koltun, Fast Global Registration, ECCV 2016",
            code="https://github.com/isl-org/FastGlobalRegistration"),
     Method("goicp", "Go-ICP", "classical", target="baselines.classical.goicp:GoICP", table1=1, speed=2,
-           default_grid=True,
+           default_grid=True, slow=True,
            paper="Yang, Li, Campbell & Jia, Go-ICP: A Globally Optimal Solution to 3D ICP Point-Set Registration, "
                  "TPAMI 2016",
            code="https://github.com/yangjiaolong/Go-ICP"),
@@ -129,7 +133,7 @@ METHODS: tuple[Method, ...] = (
            paper="Koide, small_gicp: Efficient and parallel algorithms for point cloud registration, JOSS 2024",
            code="https://github.com/koide3/small_gicp"),
     # CPD (~7 s a pair of 768 points on 2 cores) and FilterReg (probreg: compiled from its sdist) are named, not default
-    Method("cpd", "CPD", "classical", target="baselines.classical.cpd:CPD", aliases=("coherent_point_drift",),
+    Method("cpd", "CPD", "classical", target="baselines.classical.cpd:CPD", aliases=("coherent_point_drift",), slow=True,
            paper="Myronenko & Song, Point Set Registration: Coherent Point Drift, TPAMI 2010",
            code="https://github.com/siavashk/pycpd"),
     Method("filterreg", "FilterReg", "classical", target="baselines.classical.filterreg:FilterReg",
@@ -230,6 +234,12 @@ def paper_rank(name: str, table: str = "table1") -> tuple[int, int]:
 def default_grid_methods() -> list[str]:
     """The grid's default ``benchmark.methods``."""
     return [m.key for m in METHODS if m.default_grid]
+
+
+def default_speed_methods() -> list[str]:
+    """The speed tables' default methods: the grid's default classical ones but the slow ones, then every
+    learned network, in registry order."""
+    return [m.key for m in METHODS if m.default_grid and not m.slow] + [m.key for m in learned_methods()]
 
 
 def markdown_table() -> str:

@@ -25,12 +25,10 @@ import pandas as pd
 
 from baselines import get_registrator, resolve_registrator
 from baselines.base import Registrator
-from baselines.methods import default_grid_methods, display_name, paper_rank
+from baselines.methods import default_speed_methods, display_name, find_method, paper_rank
 from src.errors import ConfigError, exit_code_of
 
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
-#: Classical methods of the grid's default list left out of the default speed table unless named (the paper omits Go-ICP).
-SLOW_CLASSICAL = ("goicp",)
 PAPER_SPEED_CSV = "supp_speed_ms.csv"
 #: Examples for ``--help`` (the methods, pairs and outputs: docs/methods/speed.md).
 USAGE = """examples:
@@ -42,10 +40,10 @@ USAGE = """examples:
 """
 
 
-def _learned() -> dict[str, str]:
-    from baselines.learned.adapter import LEARNED_METHODS
-
-    return LEARNED_METHODS
+def _learned(name: str) -> bool:
+    """A learned method of the registry (:mod:`baselines.methods`); registered extras are timed as classical."""
+    method = find_method(name)
+    return method is not None and method.kind == "learned"
 
 
 # --- inputs ------------------------------------------------------------------------------------------
@@ -353,8 +351,8 @@ def _parse_checkpoints(items: list[str]) -> dict[str, str]:
 
 
 def default_methods() -> list[str]:
-    """The grid's default classical methods (but :data:`SLOW_CLASSICAL`), then the learned ones."""
-    return [*(m for m in default_grid_methods() if m not in SLOW_CLASSICAL), *_learned()]
+    """The registry's default speed methods (:func:`baselines.methods.default_speed_methods`)."""
+    return default_speed_methods()
 
 
 def build(method: str, device: str, checkpoints: dict[str, str], model_scale: float) -> tuple[Registrator, str]:
@@ -363,7 +361,7 @@ def build(method: str, device: str, checkpoints: dict[str, str], model_scale: fl
     masks, hence on its weights."""
     import torch
 
-    if method not in _learned():
+    if not _learned(method):
         return get_registrator(method), "none"
     if method in checkpoints:
         return get_registrator(method, checkpoint=checkpoints[method], device=device), "trained"
@@ -432,7 +430,7 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
     references: dict[str, MatmulReference] = {}
     timings: list[Timing] = []
     for method in methods:
-        learned = method in _learned()
+        learned = _learned(method)
         for device in devices if learned else ["cpu"]:
             try:
                 registrator, weights = build(method, device, checkpoints, args.model_scale)
@@ -487,8 +485,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.speed", description=__doc__.split("\n\n")[0],
                                      epilog=USAGE, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", default=None,
-                        help="comma-separated method names (default: icp, fgr, symmetric_icp and every learned network)")
-    parser.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)), help="comma-separated point counts (default: 512,1024,2048,4096)")
+                        help=f"comma-separated method names (default: {','.join(default_methods())})")
+    parser.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)),
+                        help="comma-separated point counts (default: %(default)s)")
     parser.add_argument("--repeats", type=int, default=10, help="timed pairs per cell (default 10)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed pairs first (default 2)")
     parser.add_argument("--devices", default=None, help="cpu and/or cuda for the learned methods (default: cpu, plus cuda if available)")

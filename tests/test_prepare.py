@@ -12,7 +12,7 @@ from src.data import cache as cache_module
 from src.data.cache import open_cache
 from src.data.mesh import MeshShape
 from src.data.prepare import build_synthetic_cache, ensure_cache, main, prepare
-from src.errors import DatasetError
+from src.errors import ConfigError, DatasetError
 from src.paths import shared_path
 
 AIRPLANE_ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
@@ -192,7 +192,7 @@ def test_synthetic_builds_once_and_ensure_cache_reuses(fake_synthetic, tmp_path,
 
 
 def test_ensure_cache_for_real_datasets(resampled_dir, tmp_path):
-    with pytest.raises(DatasetError, match="unknown dataset 'modelnet10'; expected one of modelnet40, "):
+    with pytest.raises(ConfigError, match="unknown dataset 'modelnet10'; expected one of modelnet40, "):
         ensure_cache("modelnet10", tmp_path)
     fix = r"run `python -m src.data.prepare modelnet40 --source PATH` \(or use data=synthetic"
     with pytest.raises(DatasetError, match=rf"no dataset cache at .*modelnet40; {fix}"):

@@ -1,9 +1,11 @@
 """Each method's training recipe (conf/recipe/<model>.yaml) is what `model=<name>` trains with: its
 batch, budget, optimiser, schedule and checkpoint selection reach the datamodule, the trainer and
-RegistrationModule; explicit overrides still win; the schedules RegistrationModule builds."""
+RegistrationModule; every value cites the authors' file:line (the values live in the recipes only);
+explicit overrides still win; the schedules RegistrationModule builds."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import hydra
@@ -35,20 +37,10 @@ MODELS = sorted(p.stem for p in (CONF / "model").glob("*.yaml"))
 RECIPES = sorted(p.stem for p in (CONF / "recipe").glob("*.yaml"))
 SCHEDULER_TYPES = {"multistep": MultiStepLR, "plateau": ReduceLROnPlateau, "cosine": LambdaLR, "onecycle": OneCycleLR}
 
-# The authors' recipes (docs/recipes.md): (batch, max_steps, max_epochs, lr, weight decay, scheduler, selection).
-AUTHORS = {
-    "omnet": (64, 260000, -1, 1e-4, 0.0,
-              {"name": "multistep", "interval": "step", "milestones": [220000], "gamma": 0.1}, "val/score"),
-    "dcp": (32, -1, 250, 1e-3, 1e-4,
-            {"name": "multistep", "interval": "epoch", "milestones": [74, 149, 199], "gamma": 0.1}, "val/loss"),
-    "prnet": (36, -1, 100, 1e-3, 1e-4,
-              {"name": "multistep", "interval": "epoch", "milestones": [29, 59, 79], "gamma": 0.1}, "val/loss"),
-    "idam": (16, -1, 40, 1e-4, 1e-3,
-             {"name": "multistep", "interval": "epoch", "milestones": [30], "gamma": 0.1}, None),
-    "fmr": (8, -1, 200, 1e-3, 0.0, None, "val/loss"),
-    "deepgmr": (32, -1, 100, 1e-3, 0.0,
-                {"name": "plateau", "monitor": "val/loss", "factor": 0.5, "patience": 10, "min_lr": 1e-6}, None),
-}
+#: Recipes of this framework's own studies, not the authors' (their sources are named in their header).
+OWN_RECIPES = ("omnet_cpu",)
+#: A citation of a file and line of the authors' code (or paper): ``main.py:541``, ``params.json:12-13``.
+CITATION = re.compile(r"[\w./-]+\.\w+:\d+")
 
 
 def _compose(tmp_path: Path, *overrides: str):
@@ -73,17 +65,51 @@ def _assert_scheduler(module: RegistrationModule, spec: dict | None) -> None:
         assert config["interval"] == "epoch" and config["monitor"] == spec["monitor"]
 
 
-def test_each_listed_method_has_a_recipe_and_each_recipe_a_model():
+def test_each_model_has_a_recipe_and_each_recipe_a_model():
     """A recipe is a model's (``<model>.yaml``) or a named variant of one (``<model>_<what>.yaml``)."""
-    assert set(AUTHORS) <= set(RECIPES)
+    assert set(MODELS) <= set(RECIPES) and set(OWN_RECIPES) <= set(RECIPES)
     assert all(name in MODELS or name.rsplit("_", 1)[0] in MODELS for name in RECIPES)
 
 
+def _cited_leaves(text: str):
+    """(line number, key, cited) of every leaf value of a recipe's YAML text, read line by line. A value is
+    cited by a file:line in its own line's comment, in the comments of the lines above it in its block
+    (a block's comment may span its lines) or in an enclosing key's comment."""
+    lines = [(len(line) - len(line.lstrip()), *line.partition("#")[::2]) for line in text.splitlines()]
+    for number, (indent, body, comment) in enumerate(lines, start=1):
+        key, _, value = body.partition(":")
+        if not value.strip() or body.lstrip().startswith("-") or key.strip() == "defaults":
+            continue
+        comments, depth = [comment], indent  # depth: the indentation of the innermost key reached
+        for above, above_body, above_comment in reversed(lines[:number - 1]):
+            if depth == indent and (above >= indent or not above_body.strip()):  # a line of its block
+                comments.append(above_comment)
+            elif above_body.strip() and above < depth:  # an enclosing key
+                comments.append(above_comment)
+                depth = above
+        yield number, key.strip(), any(CITATION.search(c) for c in comments)
+
+
+@pytest.mark.parametrize("name", [name for name in RECIPES if name not in OWN_RECIPES])
+def test_every_recipe_value_cites_its_source(name):
+    uncited = [f"{name}.yaml:{number} {key}" for number, key, cited in _cited_leaves((CONF / "recipe" / f"{name}.yaml").read_text())
+               if not cited]
+    assert not uncited, f"values without a file:line of the authors' code in their comment: {uncited}"
+
+
+def test_an_uncited_value_is_found():
+    text = "data:\n  batch_size: 32   # --batch_size 32 (main.py:541)\nmodel:\n  lr: 1.0e-3   # the authors' rate\n"
+    assert [(key, cited) for _, key, cited in _cited_leaves(text)] == [("batch_size", True), ("lr", False)]
+
+
 def test_the_cpu_recipe_decays_at_its_fraction_of_any_budget(tmp_path):
+    recipe = _recipe("omnet_cpu")
     cfg = _compose(tmp_path, "+exp=unseen_shapes", "recipe=omnet_cpu", "trainer.max_steps=500")
-    assert (cfg.model_scale, cfg.data.batch_size, cfg.model.lr) == (0.0625, 16, 3e-3)  # the command line wins
+    assert (cfg.model_scale, cfg.trainer.max_steps) == (0.0625, 500)  # the command line wins
+    assert (cfg.data.batch_size, cfg.model.lr) == (recipe.data.batch_size, recipe.model.lr)
     plain = compose_config(f"output_dir={tmp_path / 'run'}", "recipe=omnet_cpu")
-    assert (plain.model_scale, plain.trainer.max_steps, plain.model.scheduler.fractions) == (0.25, 3000, [0.8])
+    assert (plain.model_scale, plain.trainer.max_steps, plain.model.scheduler.fractions) == (
+        recipe.model_scale, recipe.trainer.max_steps, recipe.model.scheduler.fractions)
     rates, _ = _fit({"name": "multistep", "fractions": [0.5], "gamma": 0.1}, max_steps=6)
     assert rates == pytest.approx([1.0] * 3 + [0.1] * 3)
     rates, _ = _fit({"name": "multistep", "fractions": [0.5], "gamma": 0.1}, max_epochs=4)  # 12 steps
@@ -131,13 +157,11 @@ def test_recipe_reaches_the_datamodule_trainer_and_module(name, tmp_path):
             _assert_scheduler(module, spec)
 
 
-@pytest.mark.parametrize("name", sorted(AUTHORS))
-def test_default_recipe_is_the_authors(name, tmp_path):
-    batch, max_steps, max_epochs, lr, weight_decay, scheduler, monitor = AUTHORS[name]
+@pytest.mark.parametrize("name", MODELS)
+def test_a_model_trains_with_its_recipe_by_default(name, tmp_path):
     cfg = _compose(tmp_path, f"model={name}")
-    assert (cfg.data.batch_size, cfg.trainer.max_steps, cfg.trainer.max_epochs) == (batch, max_steps, max_epochs)
-    assert (cfg.model.lr, cfg.model.weight_decay, cfg.callbacks.checkpoint.monitor) == (lr, weight_decay, monitor)
-    assert (OmegaConf.to_container(cfg.model.scheduler) if cfg.model.scheduler is not None else None) == scheduler
+    for key, value in _leaves(OmegaConf.to_container(_recipe(name))):
+        assert OmegaConf.select(cfg, key) == value, key
 
 
 def test_explicit_overrides_win_over_the_recipe(tmp_path):
@@ -151,8 +175,10 @@ def test_explicit_overrides_win_over_the_recipe(tmp_path):
 
 
 def test_trainer_groups_keep_the_recipe_and_smoke_overrides_it(tmp_path):
+    recipe = _recipe("dcp")
     gpu = _compose(tmp_path, "model=dcp", "trainer=gpu")
-    assert (gpu.data.batch_size, gpu.trainer.max_steps, gpu.trainer.max_epochs) == (32, -1, 250)
+    assert (gpu.data.batch_size, gpu.trainer.max_steps, gpu.trainer.max_epochs) == (
+        recipe.data.batch_size, recipe.trainer.max_steps, recipe.trainer.max_epochs)
     smoke = _compose(tmp_path, "model=dcp", "trainer=smoke")
     assert (smoke.data.batch_size, smoke.trainer.max_steps, smoke.model.lr) == (8, 16, 1e-3)
     demo = _compose(tmp_path, "+exp=unseen_shapes", "data=synthetic", "trainer=smoke")
@@ -160,9 +186,10 @@ def test_trainer_groups_keep_the_recipe_and_smoke_overrides_it(tmp_path):
 
 
 def test_another_recipe_can_be_chosen(tmp_path):
-    cfg = _compose(tmp_path, "model=dcp", "recipe=omnet")
+    cfg, recipe = _compose(tmp_path, "model=dcp", "recipe=omnet"), _recipe("omnet")
     assert cfg.model.network._target_ == "baselines.learned.dcp.DCP"
-    assert (cfg.data.batch_size, cfg.trainer.max_steps, cfg.model.scheduler.milestones) == (64, 260000, [220000])
+    assert (cfg.data.batch_size, cfg.trainer.max_steps, cfg.model.scheduler.milestones) == (
+        recipe.data.batch_size, recipe.trainer.max_steps, recipe.model.scheduler.milestones)
 
 
 @pytest.mark.parametrize(("partial", "points"), [("prnet", 768), ("rpmnet", 717)])

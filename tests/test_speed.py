@@ -75,3 +75,14 @@ def test_batch_flops_scale_with_the_batch(tmp_path):
     flops = pd.read_csv(tmp_path / "speed.csv").set_index("batch")["gflop_per_call"]
     assert abs(flops[3] - 3 * flops[1]) < 0.05 * flops[3]  # untrained: every point kept (masks all ones)
     assert "process's CPU time" in (tmp_path / "speed.md").read_text()
+
+
+def test_default_methods_and_columns_come_from_the_registry():
+    from baselines.methods import METHODS, get_method
+
+    defaults = speed.default_methods()
+    assert defaults == [m.key for m in METHODS if (m.default_grid or m.kind == "learned") and not m.slow]
+    assert "goicp" not in defaults and "goicp" in [m.key for m in METHODS if m.default_grid]  # the paper times no Go-ICP
+    columns = [get_method(m) for m in sorted(reversed(defaults), key=speed._column_order)]
+    positions = [m.speed for m in columns if m.speed is not None]
+    assert positions == sorted(positions) and columns[-1].ours  # the registry's speed order, OMNet last

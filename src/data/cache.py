@@ -7,7 +7,8 @@ Layout of ``<cache_root>/<dataset>/``::
     {split}_normals.npy   float32 (N, S, P, 3)   optional
     {split}_labels.npy    int64   (N,)           index into manifest["categories"]
 
-The manifest records ``format_version``, ``dataset``, ``source_layout``, ``pair_sampling``,
+The manifest records ``format_version``, ``dataset`` and ``source_layout`` (a record of
+:mod:`src.data.datasets` and one of its layouts), ``pair_sampling``,
 ``categories``, ``halves``, ``splits`` (count, shape, shape_names, per-file name/bytes/sha256),
 ``missing_splits`` (count, examples, by_category, message), ``sampling``, ``source`` (paths and
 fingerprints), ``content_hash`` (sha256 of every other field, the file hashes included) and, last,
@@ -30,13 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from src.data.datasets import DATASET_NAMES, get_dataset
 from src.errors import DatasetError
 from src.files import disk_error, disk_errors, preallocate
 
 FORMAT_VERSION = 2
 """2: ``content_hash`` covers the whole manifest; ``source`` holds ``paths`` and ``fingerprints``."""
-DATASETS: tuple[str, ...] = ("modelnet40", "modelnet40_resampled", "stanford", "synthetic")
-SOURCE_LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "scan_meshes", "procedural")
 PAIR_SAMPLINGS: tuple[str, ...] = ("independent_samplings", "single_sampling", "disjoint_subsets")
 """``independent_samplings``: S >= 2 mesh samplings, TS picks 2 of S, OS uses one.
 ``single_sampling``: S = 1, only OS possible. ``disjoint_subsets``: S = 1 dense points, TS = two
@@ -57,8 +57,8 @@ def default_cache_root() -> Path:
 
 def prepare_hint(dataset: str) -> str:
     """How to (re)build the cache of ``dataset``."""
-    if dataset == "synthetic":
-        return "run `python -m src.data.prepare synthetic`"
+    if dataset in DATASET_NAMES and get_dataset(dataset).generated:
+        return f"run `python -m src.data.prepare {dataset}`"
     return (
         f"run `python -m src.data.prepare {dataset} --source PATH` "
         "(or use data=synthetic for the embedded synthetic default)"

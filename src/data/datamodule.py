@@ -14,6 +14,7 @@ from torch.utils.data import DataLoader
 
 from src.data.cache import Cache, CacheSplit, default_cache_root
 from src.data.categories import AXISYMMETRIC_CATEGORIES
+from src.data.datasets import get_dataset
 from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardSampler, PairDataset
 from src.data.prepare import ensure_cache
 from src.data.pipelines import build_pair_transforms
@@ -83,7 +84,7 @@ def check_pair_layout(pair: Mapping[str, Any], pair_sampling: str, cloud_points:
     wanted = pair.get("num_points")
     if pair_sampling not in _WHOLE_SAMPLINGS or wanted is None or wanted == cloud_points:
         return
-    build = (f"data.build.num_points={wanted}" if dataset == "synthetic"
+    build = (f"data.build.num_points={wanted}" if get_dataset(dataset).generated
              else f"python -m src.data.prepare {dataset} --source PATH --num-points {wanted}")
     raise ConfigError(
         f"data.pair.num_points={wanted} cannot take effect on the {dataset} cache (layout {pair_sampling}): each "

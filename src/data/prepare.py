@@ -1,11 +1,14 @@
-"""Build the dataset cache: ``python -m src.data.prepare {modelnet40,modelnet40_resampled,synthetic}``.
+"""Build the dataset cache: ``python -m src.data.prepare DATASET`` (a record of :mod:`src.data.datasets`).
 
 * ``modelnet40 --source PATH``: the Princeton mesh archive (S=40 samplings x 2048 points per mesh,
   ``independent_samplings``) or PointNet's h5 archive (S=1, ``single_sampling``), folder or .zip.
 * ``modelnet40_resampled --source PATH``: PointNet++'s ``modelnet40_normal_resampled`` (S=1 dense
   points + normals, ``disjoint_subsets``); a split whose listed files are absent is not built and
   reported (per category: count + first ids).
+* ``stanford --source PATH``: a folder (or .zip) of .off/.ply scan meshes, sampled as meshes.
 * ``synthetic``: the embedded procedural default (also built on first use by :func:`ensure_cache`).
+
+The layouts, URLs and sampling defaults of each dataset are its record's (:mod:`src.data.datasets`).
 
 ``--source`` may be repeated: archives of one layout (e.g. one .zip per category) are merged into one
 cache (their categories, splits and fingerprints in one manifest; the order given does not matter).
@@ -37,10 +40,9 @@ from urllib.parse import urlparse
 import numpy as np
 from tqdm import tqdm
 
-from src.data.cache import (
-    DATASETS, Cache, CacheWriter, check_cache, default_cache_root, file_sha256, open_cache, prepare_hint,
-)
+from src.data.cache import Cache, CacheWriter, check_cache, default_cache_root, file_sha256, open_cache, prepare_hint
 from src.data.categories import half_categories
+from src.data.datasets import DATASET_NAMES, DATASETS, get_dataset, source_of
 from src.data.download import download as download_file
 from src.data.mesh import MeshShape
 from src.data.readers import (
@@ -52,21 +54,9 @@ from src.files import disk_errors
 
 log = logging.getLogger(__name__)
 
-URLS: dict[str, str] = {
-    "princeton_off": "http://modelnet.cs.princeton.edu/ModelNet40.zip",
-    "pointnet_h5": "https://shapenet.cs.stanford.edu/media/modelnet40_ply_hdf5_2048.zip",
-    "pointnet2_resampled": "https://shapenet.cs.stanford.edu/media/modelnet40_normal_resampled.zip",
-}
-"""Official archives per layout (``--download`` uses the first layout of the dataset; ``--url``
-overrides, e.g. with the PointNet h5 archive)."""
-DATASET_LAYOUTS: dict[str, tuple[str, ...]] = {
-    "modelnet40": ("princeton_off", "pointnet_h5"),
-    "modelnet40_resampled": ("pointnet2_resampled",),
-    "stanford": ("scan_meshes",),
-}
-MESH_DEFAULTS = {"modelnet40": (40, 2048), "stanford": (40, 2048), "synthetic": (10, 2048)}
-"""Default ``(num_samplings, num_points)`` when sampling meshes."""
 AS_PROVIDED = "as_provided"
+SYNTHETIC = get_dataset("synthetic")
+"""The generated dataset (:func:`build_synthetic_cache`); its defaults are its record's."""
 
 Shape = MeshShape | PointShape
 Sampled = tuple[np.ndarray, np.ndarray | None]
@@ -184,11 +174,6 @@ def _reject_options(options: dict[str, object], target: str) -> None:
         raise DatasetError(f"{', '.join(given)}: not applicable to {target}")
 
 
-def _check_dataset(dataset: str) -> None:
-    if dataset not in DATASETS:
-        raise DatasetError(f"unknown dataset {dataset!r}; expected one of {', '.join(DATASETS)}")
-
-
 def _pair_sampling(num_samplings: int) -> str:
     return "independent_samplings" if num_samplings >= 2 else "single_sampling"
 
@@ -213,10 +198,11 @@ def _normals_flag(normals: bool) -> dict:
 def _sampling_params(
     layout: str, num_samplings: int | None, num_points: int | None, seed: int, limit: int | None, normals: bool = False,
 ) -> dict:
-    if layout in ("princeton_off", "scan_meshes"):
-        default_s, default_p = MESH_DEFAULTS["stanford" if layout == "scan_meshes" else "modelnet40"]
+    dataset, source = source_of(layout)
+    if source.meshes:
         return {
-            "num_samplings": num_samplings or default_s, "num_points": num_points or default_p, "seed": seed,
+            "num_samplings": num_samplings or dataset.num_samplings, "num_points": num_points or dataset.num_points,
+            "seed": seed,
             "method": METHOD, "normalization": NORMALIZATION, "limit": limit, **_normals_flag(normals),
         }
     _reject_options(
@@ -252,8 +238,8 @@ def _common_layout(dataset: str, sources: list[_Source]) -> str:
         found = ", ".join(f"{s.path} is {layout}" for s, layout in zip(sources, layouts))
         raise DatasetError(f"sources to merge must share one layout: {found}")
     layout = layouts[0]
-    if layout not in DATASET_LAYOUTS[dataset]:
-        other = next(d for d, options in DATASET_LAYOUTS.items() if layout in options)
+    if layout not in get_dataset(dataset).layouts:
+        other = source_of(layout)[0].name
         raise DatasetError(
             f"{sources[0].path} is in the {layout} layout, which is prepared as `{other}`, not `{dataset}`"
         )
@@ -289,21 +275,20 @@ def _build_modelnet(
     if not reader.entries:
         raise DatasetError(f"{reader.where}: no split can be built")
     check_split_identities(reader.entries, {split: reader.split_list(split) for split in reader.entries})
-    if layout in ("princeton_off", "scan_meshes"):
+    source = source_of(layout)[1]
+    if source.meshes:
         compute, pair_sampling = _sample_mesh, _pair_sampling(sampling["num_samplings"])
     else:
         first = reader.load(next(iter(reader.entries.values()))[0])
         sampling = {**sampling, "num_points": len(first.points)}
-        compute = _as_provided
-        pair_sampling = "single_sampling" if layout == "pointnet_h5" else "disjoint_subsets"
+        compute, pair_sampling = _as_provided, source.as_provided
     fields = {
         "dataset": dataset, "source_layout": layout, "pair_sampling": pair_sampling,
         "categories": reader.categories, "halves": modelnet_halves(reader.categories), "sampling": sampling,
         "source": {"paths": [str(s.path.resolve()) for s in sources], "fingerprints": [s.fingerprint for s in sources]},
         "missing_splits": {split: missing.to_json() for split, missing in reader.missing.items()},
     }
-    # h5 shapes are rows of large files: loading them in one process reads each file once.
-    workers = 1 if layout == "pointnet_h5" else workers
+    workers = 1 if source.one_process else workers  # rows of large files: one process reads each file once
     with CacheWriter(out, fields) as writer, _shape_mapper(reader, compute, sampling, workers) as map_tasks:
         offset = 0  # shape index = position in the full split lists, so --limit keeps the first shapes' samplings
         for split, entries in reader.entries.items():
@@ -331,16 +316,17 @@ def _first_per_category(entries: list[ShapeEntry], offset: int, limit: int | Non
 
 
 def build_synthetic_cache(
-    cache_root: Path | None = None, num_train_per_category: int = 24, num_test_per_category: int = 8,
-    num_samplings: int = 10, num_points: int = 2048, seed: int = 0, force: bool = False, normals: bool = False,
+    cache_root: Path | None = None, num_train_per_category: int = SYNTHETIC.build["num_train_per_category"],
+    num_test_per_category: int = SYNTHETIC.build["num_test_per_category"], num_samplings: int = SYNTHETIC.num_samplings,
+    num_points: int = SYNTHETIC.num_points, seed: int = 0, force: bool = False, normals: bool = False,
 ) -> Cache:
     """Build (or reuse, when valid) ``<cache_root>/synthetic`` from :mod:`src.data.synthetic` (with the
-    sampled faces' normals when ``normals``: ``data.build.normals=true``).
+    sampled faces' normals when ``normals``: ``data.build.normals=true``); the defaults are the record's.
 
     The generator module's sha256 is part of the source fingerprint, so editing it rebuilds the cache.
     """
     synthetic = importlib.import_module("src.data.synthetic")
-    out = Path(cache_root or default_cache_root()) / "synthetic"
+    out = Path(cache_root or default_cache_root()) / SYNTHETIC.name
     sampling = {
         "num_samplings": num_samplings, "num_points": num_points, "seed": seed, "method": METHOD,
         "normalization": NORMALIZATION, "num_train_per_category": num_train_per_category,
@@ -350,7 +336,7 @@ def build_synthetic_cache(
     fingerprint = {"sha256": file_sha256(Path(module_file))} if module_file else {}
     categories = list(synthetic.SYNTHETIC_CATEGORIES)
     expected = {
-        "dataset": "synthetic", "categories": categories, "sampling": sampling,
+        "dataset": SYNTHETIC.name, "categories": categories, "sampling": sampling,
         "source": {"fingerprints": [fingerprint]},
     }
     return _reuse_or_build(out, expected, force, lambda: _build_synthetic(out, synthetic, sampling, fingerprint))
@@ -363,7 +349,7 @@ def _build_synthetic(out: Path, synthetic: ModuleType, sampling: dict, fingerpri
     for shape in synthetic.generate_shapes(num_train, num_test, sampling["seed"]):
         by_split.setdefault(shape.split, []).append(shape)
     fields = {
-        "dataset": "synthetic", "source_layout": "procedural",
+        "dataset": SYNTHETIC.name, "source_layout": SYNTHETIC.layouts[0],
         "pair_sampling": _pair_sampling(sampling["num_samplings"]), "categories": categories,
         "halves": {k: list(v) for k, v in synthetic.SYNTHETIC_HALVES.items()},
         "sampling": sampling, "source": {"paths": [synthetic.__name__], "fingerprints": [fingerprint]},
@@ -386,9 +372,8 @@ def ensure_cache(dataset: str, cache_root: Path | None = None, **params) -> Cach
     prepared (a damaged cache is rebuilt from the sources its manifest names when they still exist,
     else refused), and any ``params`` (e.g. ``num_points=2048``) must match its manifest's ``sampling``."""
     root = Path(cache_root or default_cache_root())
-    if dataset == "synthetic":
+    if get_dataset(dataset).generated:
         return build_synthetic_cache(root, **params)
-    _check_dataset(dataset)
     cache = _open_or_rebuild(dataset, root / dataset)
     for key, value in params.items():
         if cache.manifest["sampling"].get(key) != value:
@@ -436,30 +421,29 @@ def prepare(
 ) -> Cache:
     """What the command line does; see the module docstring."""
     cache_root = Path(cache_root or default_cache_root())
-    if dataset == "synthetic":
+    record = get_dataset(dataset)
+    if record.generated:
         _reject_options(
             {"--source": source, "--download": download, "--url": url, "--limit": limit},
-            "synthetic (it is generated procedurally)",
+            f"{dataset} (it is generated procedurally)",
         )
-        default_s, default_p = MESH_DEFAULTS["synthetic"]
         return build_synthetic_cache(
-            cache_root, num_samplings=num_samplings or default_s, num_points=num_points or default_p,
-            seed=seed, force=force, normals=normals,
+            cache_root, num_samplings=num_samplings or record.num_samplings,
+            num_points=num_points or record.num_points, seed=seed, force=force, normals=normals,
         )
-    _check_dataset(dataset)
     sources = [source] if isinstance(source, (str, os.PathLike)) else list(source or [])
     if url and not download:
         raise DatasetError("--url is only used with --download")
     if download and sources:
         raise DatasetError("use either --source PATH or --download, not both")
     if download:
-        if not url and DATASET_LAYOUTS[dataset][0] not in URLS:
+        if not url and not record.url:
             raise DatasetError(f"{dataset} has no official archive to download: pass --source PATH (or --download --url URL)")
-        url = url or URLS[DATASET_LAYOUTS[dataset][0]]
+        url = url or record.url
         name = PurePosixPath(urlparse(url).path).name or f"{dataset}.zip"
         sources = [download_file(url, cache_root / "downloads" / name)]
     if not sources:
-        archives = " or ".join(DATASET_LAYOUTS[dataset])
+        archives = " or ".join(record.layouts)
         raise DatasetError(f"{dataset} needs --source PATH (a {archives} folder or .zip) or --download")
     return prepare_modelnet(
         dataset, sources, cache_root, num_samplings=num_samplings, num_points=num_points,
@@ -474,16 +458,21 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _defaults(key: str) -> str:
+    """A sampling default of every dataset with meshes, from its record: ``modelnet40 40, synthetic 10``."""
+    return ", ".join(f"{d.name} {getattr(d, key)}" for d in DATASETS if getattr(d, key) is not None)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m src.data.prepare", description=__doc__.split("\n\n")[0])
-    p.add_argument("dataset", choices=DATASETS)
+    p.add_argument("dataset", choices=DATASET_NAMES, help="; ".join(f"{d.name}: {d.description}" for d in DATASETS))
     p.add_argument(
         "--source", type=Path, action="append",
         help="archive folder or .zip (layout auto-detected); repeat to merge several of one layout into one cache",
     )
     p.add_argument("--cache-root", type=Path, help="default: $OMNET_CACHE_DIR or ~/.cache/omnet-registration")
-    p.add_argument("--num-samplings", type=_positive_int, help="mesh samplings per shape (default 40; synthetic 10)")
-    p.add_argument("--num-points", type=_positive_int, help="points per mesh sampling (default 2048)")
+    p.add_argument("--num-samplings", type=_positive_int, help=f"mesh samplings per shape (default {_defaults('num_samplings')})")
+    p.add_argument("--num-points", type=_positive_int, help=f"points per mesh sampling (default {_defaults('num_points')})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1, help="sampling processes")
     p.add_argument("--download", action="store_true", help="fetch the official archive into <cache-root>/downloads/")

@@ -1,9 +1,10 @@
-"""Readers for the three ModelNet40 layouts, each from a folder or straight from its .zip.
+"""Readers for the archive layouts of :mod:`src.data.datasets`, each from a folder or straight from its .zip.
 
 * ``princeton_off``: the Princeton mesh archive ``ModelNet40/<category>/{train,test}/<name>.off``.
 * ``pointnet_h5``: PointNet's ``modelnet40_ply_hdf5_2048`` (``ply_data_{train,test}*.h5``).
 * ``pointnet2_resampled``: PointNet++'s ``modelnet40_normal_resampled`` (the full archive or any
   subset of its category folders).
+* ``scan_meshes``: any folder of ``.off`` / ``.ply`` scans.
 
 A reader lists its shapes as :class:`ShapeEntry` per split (``entries``), reports the splits it
 cannot build (``missing``) and loads one entry at a time (``load``). Readers are picklable, so
@@ -28,10 +29,11 @@ import h5py
 import numpy as np
 
 from src.data.categories import MODELNET40_CATEGORIES
+from src.data.datasets import read_sources
 from src.data.mesh import MeshShape
 from src.errors import DatasetError
 
-LAYOUTS: tuple[str, ...] = ("princeton_off", "pointnet_h5", "pointnet2_resampled", "scan_meshes")
+LAYOUTS: tuple[str, ...] = tuple(s.layout for s in read_sources())
 SPLITS: tuple[str, ...] = ("train", "test")
 MISSING_EXAMPLES = 10
 """How many missing shape ids a :class:`MissingSplit` keeps per category (the message shows the first 5)."""
@@ -198,6 +200,12 @@ class Reader:
     ``missing`` splits and ``load``."""
 
     layout: str
+    """Its layout, as :data:`READERS` (from :mod:`src.data.datasets`) names it."""
+
+    @classmethod
+    def detects(cls, archive: Archive) -> bool:
+        """Whether ``archive`` is in this reader's layout."""
+        raise NotImplementedError
 
     def __init__(self, archive: Archive):
         self.archive = archive
@@ -290,8 +298,11 @@ def _polygon_faces(body: str, num_vertices: int, num_faces: int, name: str) -> n
 class PrincetonOffReader(Reader):
     """``<...>/<category>/{train,test}/<name>.off`` meshes; yields :class:`MeshShape`."""
 
-    layout = "princeton_off"
     PATTERN = re.compile(r"(?:^|/)([^/]+)/(train|test)/([^/]+)\.off$", re.IGNORECASE)
+
+    @classmethod
+    def detects(cls, archive: Archive) -> bool:
+        return any(cls.PATTERN.search(f) for f in archive.files)
 
     def __init__(self, archive: Archive):
         super().__init__(archive)
@@ -320,8 +331,11 @@ class PointNetH5Reader(Reader):
     """``ply_data_{train,test}<k>.h5`` (``data`` (B,2048,3), ``label`` (B,1), optional ``normal``)
     plus ``shape_names.txt``; shape ids come from ``ply_data_<split>_<k>_id2file.json`` when present."""
 
-    layout = "pointnet_h5"
     PATTERN = re.compile(r"(?:^|/)ply_data_(train|test)(\d*)\.h5$")
+
+    @classmethod
+    def detects(cls, archive: Archive) -> bool:
+        return any(cls.PATTERN.search(f) for f in archive.files)
 
     def __init__(self, archive: Archive):
         super().__init__(archive)
@@ -433,9 +447,12 @@ class ResampledReader(Reader):
     absent files of present categories is reported in ``missing`` (per category: count + first ids).
     """
 
-    layout = "pointnet2_resampled"
     NAMES_FILE = "modelnet40_shape_names.txt"
     ID = re.compile(r"(.+)_\d+")
+
+    @classmethod
+    def detects(cls, archive: Archive) -> bool:
+        return any(PurePosixPath(f).name == cls.NAMES_FILE for f in archive.files)
 
     def __init__(self, archive: Archive):
         super().__init__(archive)
@@ -505,8 +522,11 @@ class ScanMeshReader(Reader):
     """Any folder (or .zip) of ``.off`` / ``.ply`` scan meshes, or one such file; each scan is its own
     category and everything is the ``test`` split (scans are for evaluation without fine-tuning)."""
 
-    layout = "scan_meshes"
     SUFFIXES = (".off", ".ply")
+
+    @classmethod
+    def detects(cls, archive: Archive) -> bool:
+        return any(f.lower().endswith(cls.SUFFIXES) for f in archive.files)
 
     def __init__(self, archive: Archive):
         super().__init__(archive)
@@ -603,39 +623,29 @@ class MergedReader(Reader):
         return self.readers[entry.source].load(entry)
 
 
-READERS: dict[str, type[Reader]] = {
-    "pointnet2_resampled": ResampledReader,
-    "pointnet_h5": PointNetH5Reader,
-    "princeton_off": PrincetonOffReader,
-    "scan_meshes": ScanMeshReader,
-}
+_READER_CLASSES = {cls.__name__: cls for cls in Reader.__subclasses__()}
+READERS: dict[str, type[Reader]] = {s.layout: _READER_CLASSES[s.reader] for s in read_sources()}
+"""The reader of each layout, as :mod:`src.data.datasets` names them (detection order)."""
+for _layout, _reader in READERS.items():
+    _reader.layout = _layout
 
 
 # --- layout detection -----------------------------------------------------------------------
 
 
 def layout_of(archive: Archive) -> str:
-    """The layout of an opened archive (see :func:`detect_layout`)."""
-    names = [PurePosixPath(f).name for f in archive.files]
-    if ResampledReader.NAMES_FILE in names:
-        return "pointnet2_resampled"
-    if any(PointNetH5Reader.PATTERN.search(f) for f in archive.files):
-        return "pointnet_h5"
-    if any(PrincetonOffReader.PATTERN.search(f) for f in archive.files):
-        return "princeton_off"
-    if any(f.lower().endswith(ScanMeshReader.SUFFIXES) for f in archive.files):
-        return "scan_meshes"
-    raise DatasetError(
-        f"{archive.path} matches no known ModelNet40 layout; expected one of: Princeton meshes "
-        "(ModelNet40/<category>/{train,test}/*.off), PointNet h5 (modelnet40_ply_hdf5_2048: "
-        "ply_data_*.h5 + shape_names.txt) or PointNet++ resampled (modelnet40_normal_resampled: "
-        "modelnet40_shape_names.txt, modelnet40_{train,test}.txt, <category>/<id>.txt), as a folder or .zip, "
-        "or a folder of .off/.ply scans"
-    )
+    """The layout of an opened archive: the first of :data:`READERS` that detects it."""
+    layout = next((layout for layout, reader in READERS.items() if reader.detects(archive)), None)
+    if layout is None:
+        archives = ", ".join(s.archive for s in read_sources())
+        raise DatasetError(
+            f"{archive.path} matches no known ModelNet40 layout; expected one of: {archives}, as a folder or .zip"
+        )
+    return layout
 
 
 def detect_layout(source: Path) -> str:
-    """``"princeton_off"``, ``"pointnet_h5"`` or ``"pointnet2_resampled"`` for a folder or .zip."""
+    """The layout (one of :data:`LAYOUTS`) of a folder or .zip."""
     return layout_of(Archive(source))
 
 
