@@ -50,8 +50,9 @@ def _popen(args: list[str], log: Path) -> subprocess.Popen:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Builds the cache and a checkpoint in-process, then runs together: a 2x2 grid multirun
-    (partial {prnet, rpmnet} x data.pair.prnet_num_keep {768, 4096}; PRNet's crop cannot keep 4096
-    of 2048 points, so exactly that job fails) and a 2-process DDP evaluation of the checkpoint;
+    (partial {prnet, rpmnet} x data.pair.noise_sigma {0.0, -0.5}; a negative noise is refused, so the two
+    jobs with it fail; a key that one partial manner does not read would be refused in its jobs, see
+    tests/test_bad_input.py) and a 2-process DDP evaluation of the checkpoint;
     meanwhile the same checkpoint is evaluated in this process (eval batches of 3 over 7 pairs:
     2 batches on rank 0, 1 on rank 1)."""
     tmp = tmp_path_factory.mktemp("sweeps")
@@ -61,7 +62,7 @@ def runs(tmp_path_factory):
     eval_args = [*TINY, cache, f"ckpt_path={ckpt}", "data.eval_batch_size=3"]
     procs = {
         "grid": _popen(["-m", "src.train", "-m", *TINY, cache, *STEP, "trainer.limit_test_batches=1",
-                        f"hydra.sweep.dir={tmp / 'grid'}", "partial=prnet,rpmnet", "data.pair.prnet_num_keep=768,4096"],
+                        f"hydra.sweep.dir={tmp / 'grid'}", "partial=prnet,rpmnet", "data.pair.noise_sigma=0.0,-0.5"],
                        tmp / "grid.log"),
         "ddp": _popen(["-m", "src.eval", *eval_args, "trainer=ddp", "trainer.devices=2",
                        f"hydra.run.dir={tmp / 'ddp'}"], tmp / "ddp.log"),
@@ -79,20 +80,20 @@ def runs(tmp_path_factory):
 def test_grid_multirun_is_collected_into_one_frame(runs, capsys):
     grid = runs["tmp"] / "grid"
     assert runs["codes"]["grid"] == 3, runs["logs"]["grid"][-3000:]  # FailureSummary: the sweep finished, a job failed
-    assert "1 of 4 jobs failed" in runs["logs"]["grid"]
+    assert "2 of 4 jobs failed" in runs["logs"]["grid"]
     result = collect(grid)
     metrics = sorted(json.loads((grid / "0" / "metrics.json").read_text())["metrics"])
     assert result.expected == 4 and len(result.jobs) == 4
-    assert sorted(result.swept) == ["data.pair.prnet_num_keep", "partial"]
-    status = result.jobs.set_index(["partial", "data.pair.prnet_num_keep"])["status"].to_dict()
-    assert status == {("prnet", 768): "ok", ("prnet", 4096): "failed", ("rpmnet", 768): "ok", ("rpmnet", 4096): "ok"}
-    assert result.tidy.shape[0] == 3 * len(metrics)
-    assert {"method", "experiment", "sampling", "partial", "metric", "value", "data.pair.prnet_num_keep"} <= set(result.tidy.columns)
+    assert sorted(result.swept) == ["data.pair.noise_sigma", "partial"]
+    status = result.jobs.set_index(["partial", "data.pair.noise_sigma"])["status"].to_dict()
+    assert status == {("prnet", 0.0): "ok", ("prnet", -0.5): "failed", ("rpmnet", 0.0): "ok", ("rpmnet", -0.5): "failed"}
+    assert result.tidy.shape[0] == 2 * len(metrics)
+    assert {"method", "experiment", "sampling", "partial", "metric", "value", "data.pair.noise_sigma"} <= set(result.tidy.columns)
     assert set(result.tidy["method"]) == {"OMNet"} and set(result.tidy["experiment"]) == {"unseen_shapes"}
-    counts = result.tidy.groupby(["partial", "data.pair.prnet_num_keep"]).size().to_dict()
-    assert counts == {("prnet", 768): len(metrics), ("rpmnet", 768): len(metrics), ("rpmnet", 4096): len(metrics)}
-    assert result.wide.shape[0] == 3 and set(metrics) <= set(result.wide.columns)
-    one = result.wide.set_index(["partial", "data.pair.prnet_num_keep"]).loc[("rpmnet", 4096)]
+    counts = result.tidy.groupby(["partial", "data.pair.noise_sigma"]).size().to_dict()
+    assert counts == {("prnet", 0.0): len(metrics), ("rpmnet", 0.0): len(metrics)}
+    assert result.wide.shape[0] == 2 and set(metrics) <= set(result.wide.columns)
+    one = result.wide.set_index(["partial", "data.pair.noise_sigma"]).loc[("rpmnet", 0.0)]
     assert one["Error(R)"] == json.loads((Path(one["run_dir"]) / "metrics.json").read_text())["metrics"]["Error(R)"]
     # the CLI writes parquet + CSV that read back to the same frame
     out = runs["tmp"] / "collected_grid"
@@ -107,16 +108,16 @@ def test_grid_multirun_is_collected_into_one_frame(runs, capsys):
 def test_failing_job_is_recorded_and_the_others_survive(runs, capsys):
     grid = runs["tmp"] / "grid"
     failed = collect(grid).failures
-    assert len(failed) == 1
+    assert len(failed) == 2
     job = Path(failed.iloc[0]["run_dir"])
     record = json.loads((job / "failure.json").read_text())
-    assert record["reason"] == "DatasetError: points_src has 2048 points, PRNet crop keeps 4096"
-    assert record["user_error"] and "data.pair.prnet_num_keep=4096" in record["overrides"] and "Traceback" in record["traceback"]
+    assert "noise_sigma" in record["reason"]
+    assert record["user_error"] and "data.pair.noise_sigma=-0.5" in record["overrides"] and "Traceback" in record["traceback"]
     assert not (job / "metrics.json").exists()
-    assert sum((d / "metrics.json").is_file() for d in grid.iterdir() if d.is_dir()) == 3
+    assert sum((d / "metrics.json").is_file() for d in grid.iterdir() if d.is_dir()) == 2
     assert collect_main([str(grid), "--out", str(runs["tmp"] / "c_fail"), "--strict"]) == 1
     out = capsys.readouterr().out
-    assert "1 failed" in out and "PRNet crop keeps 4096" in out
+    assert "2 failed" in out and "noise_sigma" in out
     # a job killed without a trace (no metrics, no failure.json) is reported as missing
     ok = Path(collect(grid).wide.iloc[0]["run_dir"])
     (ok / "metrics.json").rename(ok / "metrics.json.bak")
@@ -129,7 +130,7 @@ def test_failing_job_is_recorded_and_the_others_survive(runs, capsys):
 
 def test_latex_table_compiles_and_holds_the_collected_numbers(runs, tmp_path):
     frame = collect(runs["tmp"] / "grid").tidy
-    frame["method"] = "OMNet k=" + frame["data.pair.prnet_num_keep"].astype(str)
+    frame["method"] = "OMNet noise=" + frame["data.pair.noise_sigma"].astype(str)
     table = build_table(frame, "table2")
     tex = to_latex(table)
     assert check_latex(tex) == []
@@ -139,15 +140,15 @@ def test_latex_table_compiles_and_holds_the_collected_numbers(runs, tmp_path):
     blocks = [r[0] for r in rows if r[0].startswith("\\multicolumn")]
     assert len(blocks) == 2 and "Unseen shapes" in blocks[0] and "RPMNet manner" in blocks[1]
     seen = 0
-    for partial, label_rows in (("prnet", rows[2:3]), ("rpmnet", rows[4:6])):
+    for partial, label_rows in (("prnet", rows[2:3]), ("rpmnet", rows[4:5])):
         for row in label_rows:
             cells = [re.sub(r"\\(textbf|underline)\{(.*)\}", r"\2", c) for c in row[1:]]
             for metric, cell in zip(table.metrics, cells):
                 value = frame[(frame["method"] == row[0]) & (frame["partial"] == partial) & (frame["metric"] == metric)]["value"]
                 assert cell == fmt(float(value.iloc[0]), metric)
                 seen += 1
-    assert seen == 3 * len(table.metrics)
-    assert "synthetic data, not ModelNet40" in tex and "| OMNet k=768 |" in to_markdown(table)
+    assert seen == 2 * len(table.metrics)
+    assert "synthetic data, not ModelNet40" in tex and "| OMNet noise=0.0 |" in to_markdown(table)
     ok, log = compile_latex(to_latex(table, standalone=True), tmp_path / "table.pdf")
     if ok is None:
         pytest.skip(f"structure checked; not compiled: {log}")
