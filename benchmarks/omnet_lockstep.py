@@ -232,11 +232,12 @@ def lockstep(args: argparse.Namespace) -> Path:
         if step_count % args.val_every == 0 or step_count == args.steps:
             with curves.open("a", newline="") as f:
                 for n in pair.nets:
-                    row = validate(pair, n, val_loader)
-                    csv.writer(f).writerow([step_count, n, f"{cpu[n]:.1f}", f"{sum(running[n]) / len(running[n]):.5f}",
-                                            f"{row['val_rot_deg']:.3f}", f"{row['val_trans']:.4f}"])
+                    val = validate(pair, n, val_loader)
+                    row = [step_count, n, f"{cpu[n]:.1f}", f"{sum(running[n]) / len(running[n]):.5f}",
+                           f"{val['val_rot_deg']:.3f}", f"{val['val_trans']:.4f}"]
+                    csv.writer(f).writerow(row)
+                    print(f"step {step_count}/{args.steps}: " + ",".join(map(str, row)), flush=True)
                     running[n] = []
-            print(f"step {step_count}/{args.steps}: " + open(curves).read().splitlines()[-1], flush=True)
             torch.save({"nets": {n: m.state_dict() for n, m in pair.nets.items()},
                         "optimizers": {n: o.state_dict() for n, o in optimizers.items()},
                         "schedulers": {n: s.state_dict() for n, s in schedulers.items()},
