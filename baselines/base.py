@@ -47,6 +47,18 @@ def _positive(cfg: RegistratorConfig, *names: str, allow_zero: bool = False) -> 
             raise ConfigError(f"{type(cfg).__qualname__}.{name} must be {bound}, got {value!r}")
 
 
+
+def _within(cfg: RegistratorConfig, *names: str, interval: str) -> None:
+    """Raise ConfigError unless each named field of ``cfg`` lies in ``interval``, written as in maths:
+    ``"(0, 1]"``, ``"[0, 1)"``, ``"(1, inf)"``."""
+    low, high = (float(bound) for bound in interval[1:-1].split(","))
+    for name in names:
+        value = getattr(cfg, name)
+        above = value >= low if interval[0] == "[" else value > low
+        below = value <= high if interval[-1] == "]" else value < high
+        if not (above and below):
+            raise ConfigError(f"{type(cfg).__qualname__}.{name} must be in {interval}, got {value!r}")
+
 class Registrator(ABC):
     """A rigid registration method: ``register(src, ref) -> T`` with ``ref ≈ R src + t``.
 

@@ -1,13 +1,16 @@
 """Settings shared by the classical baselines that estimate normals or FPFH features (FGR, RANSAC, the
-Open3D ICP variants), and the one pipeline that computes them; the defaults are FGR's (see ``fgr.py``)."""
+Open3D ICP variants), the one pipeline that computes them (defaults: FGR's, see ``fgr.py``), and the base of
+the methods that match the features of both clouds."""
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from baselines.base import RegistratorConfig, _positive
+from baselines.base import Registrator, RegistratorConfig, _positive
 from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, search_param, to_pcd
 from src.errors import ConfigError
 
@@ -68,3 +71,26 @@ class FPFHConfig(NormalsConfig):
         if self.seed is not None:
             open3d().utility.random.seed(int(self.seed))
         return self.features(src), self.features(ref)
+
+
+class FPFHMatcher(Registrator):
+    """A method that matches the FPFH features of both clouds in one Open3D pipeline (FGR, RANSAC): the
+    features come from :meth:`FPFHConfig.pair_features`, the match from :meth:`_match`."""
+
+    needs_normals = True  # estimated here from the points; none need to be supplied
+
+    def setup(self) -> None:
+        open3d()
+
+    def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = self.config.pair_features(src, ref)
+        result = self._match(open3d().pipelines.registration, src_pcd, ref_pcd, src_fpfh, ref_fpfh)
+        return self._refine(np.asarray(result.transformation, dtype=np.float64), src, ref)
+
+    @abstractmethod
+    def _match(self, reg: Any, src_pcd: Any, ref_pcd: Any, src_fpfh: Any, ref_fpfh: Any) -> Any:
+        """The Open3D registration result (``.transformation``) of the two featured clouds."""
+
+    def _refine(self, transform: np.ndarray, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """The transform after an optional refinement (none by default)."""
+        return transform

@@ -38,12 +38,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
-from baselines.base import Registrator, _positive
-from baselines.classical._features import FPFHConfig
-from baselines.classical._open3d import open3d
-from src.errors import ConfigError
+from baselines.base import _positive, _within
+from baselines.classical._features import FPFHConfig, FPFHMatcher
 
 
 @dataclass
@@ -60,28 +56,18 @@ class FGRConfig(FPFHConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         _positive(self, "maximum_correspondence_distance", "iteration_number", "maximum_tuple_count")
-        if not 0.0 < self.tuple_scale < 1.0:
-            raise ConfigError(f"FGRConfig.tuple_scale must be in (0, 1), got {self.tuple_scale!r}")
-        if self.division_factor <= 1.0:
-            raise ConfigError(f"FGRConfig.division_factor must be > 1, got {self.division_factor!r}")
+        _within(self, "tuple_scale", interval="(0, 1)")
+        _within(self, "division_factor", interval="(1, inf)")
 
 
-class FGR(Registrator):
+class FGR(FPFHMatcher):
     """Open3D FPFH + Fast Global Registration, normals estimated from the given clouds."""
 
     name = "fgr"
-    needs_training = False
-    needs_normals = True  # estimated here from the points; none need to be supplied
     config_cls = FGRConfig
 
-    def setup(self) -> None:
-        open3d()
-
-    def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        o3d = open3d()
-        reg = o3d.pipelines.registration
+    def _match(self, reg, src_pcd, ref_pcd, src_fpfh, ref_fpfh):
         cfg: FGRConfig = self.config
-        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = cfg.pair_features(src, ref)
         option = reg.FastGlobalRegistrationOption(
             division_factor=float(cfg.division_factor),
             use_absolute_scale=bool(cfg.use_absolute_scale),
@@ -91,5 +77,4 @@ class FGR(Registrator):
             tuple_scale=float(cfg.tuple_scale),
             maximum_tuple_count=int(cfg.maximum_tuple_count),
         )
-        result = reg.registration_fgr_based_on_feature_matching(src_pcd, ref_pcd, src_fpfh, ref_fpfh, option)
-        return np.asarray(result.transformation, dtype=np.float64)
+        return reg.registration_fgr_based_on_feature_matching(src_pcd, ref_pcd, src_fpfh, ref_fpfh, option)

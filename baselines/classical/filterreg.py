@@ -18,9 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, _positive
+from baselines.base import Registrator, RegistratorConfig, _positive, _within
 from baselines.classical._optional import NeedsPackage
-from src.errors import ConfigError
 from src.geometry.numpy_rigid import rigid_transform
 
 
@@ -39,8 +38,7 @@ class FilterRegConfig(RegistratorConfig):
         _positive(self, "max_iterations", "tolerance", "min_sigma2")
         if self.sigma2 is not None:
             _positive(self, "sigma2")
-        if not 0.0 <= self.w < 1.0:
-            raise ConfigError(f"FilterRegConfig.w must be in [0, 1), got {self.w!r}")
+        _within(self, "w", interval="[0, 1)")
 
 
 class FilterReg(NeedsPackage, Registrator):

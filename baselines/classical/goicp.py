@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, _positive
+from baselines.base import Registrator, RegistratorConfig, _positive, _within
 from src.errors import ConfigError
 from src.geometry.numpy_rigid import project_to_rotation, rigid_transform
 
@@ -43,8 +43,7 @@ class GoICPConfig(RegistratorConfig):
 
     def __post_init__(self) -> None:
         _positive(self, "mse_threshold", "dt_size", "rotation_half_width", "translation_half_width")
-        if not 0.0 <= self.trim_fraction < 1.0:
-            raise ConfigError(f"GoICPConfig.trim_fraction must be in [0, 1), got {self.trim_fraction!r}")
+        _within(self, "trim_fraction", interval="[0, 1)")
         if self.dt_expand_factor < 1.0:
             raise ConfigError(f"GoICPConfig.dt_expand_factor must be >= 1, got {self.dt_expand_factor!r}")
         if self.rotation_half_width > math.pi + 1e-9:

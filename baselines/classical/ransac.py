@@ -20,9 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, _positive
-from baselines.classical._features import FPFHConfig
-from baselines.classical._open3d import open3d
+from baselines.base import _positive, _within
+from baselines.classical._features import FPFHConfig, FPFHMatcher
 from baselines.classical.icp import ICP
 from src.errors import ConfigError
 from src.geometry.numpy_rigid import apply_transform
@@ -46,37 +45,29 @@ class RANSACConfig(FPFHConfig):
         _positive(self, "distance_threshold", "max_iterations", "refine_distance")
         if self.ransac_n < 3:
             raise ConfigError(f"RANSACConfig.ransac_n must be >= 3 (a rigid fit needs 3 matches), got {self.ransac_n!r}")
-        for name in ("edge_length_ratio", "confidence"):
-            if not 0.0 < getattr(self, name) <= 1.0:
-                raise ConfigError(f"RANSACConfig.{name} must be in (0, 1], got {getattr(self, name)!r}")
+        _within(self, "edge_length_ratio", "confidence", interval="(0, 1]")
 
 
-class RANSAC(Registrator):
+class RANSAC(FPFHMatcher):
     """Open3D FPFH + RANSAC (optionally + ICP), normals estimated from the given clouds."""
 
     name = "ransac"
-    needs_normals = True  # estimated here from the points
     config_cls = RANSACConfig
 
-    def setup(self) -> None:
-        open3d()
-
-    def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        o3d = open3d()
-        reg = o3d.pipelines.registration
+    def _match(self, reg, src_pcd, ref_pcd, src_fpfh, ref_fpfh):
         cfg: RANSACConfig = self.config
-        (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = cfg.pair_features(src, ref)
-        result = reg.registration_ransac_based_on_feature_matching(
+        return reg.registration_ransac_based_on_feature_matching(
             src_pcd, ref_pcd, src_fpfh, ref_fpfh, bool(cfg.mutual_filter), float(cfg.distance_threshold),
             reg.TransformationEstimationPointToPoint(False), int(cfg.ransac_n),
             [reg.CorrespondenceCheckerBasedOnEdgeLength(float(cfg.edge_length_ratio)),
              reg.CorrespondenceCheckerBasedOnDistance(float(cfg.distance_threshold))],
             reg.RANSACConvergenceCriteria(int(cfg.max_iterations), float(cfg.confidence)),
         )
-        transform = np.asarray(result.transformation, dtype=np.float64)
-        if not cfg.refine_icp:
+
+    def _refine(self, transform: np.ndarray, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        if not self.config.refine_icp:
             return transform
-        refine = ICP(max_correspondence_distance=cfg.refine_distance)._register(apply_transform(transform, src), ref)
+        refine = ICP(max_correspondence_distance=self.config.refine_distance)._register(apply_transform(transform, src), ref)
         return refine @ transform
 
 
