@@ -1,4 +1,4 @@
-"""Every registration method of the comparison, one record each; everything else is derived.
+"""Every registration method of the comparison, one record each (``methods.yaml``); everything else is derived.
 
 A :class:`Method` holds a method's facts: its key (``get_registrator(key)``, ``conf/model/<key>.yaml``
 for a learned one), display name, kind, what registers (a classical method's lazy ``"module:Class"``,
@@ -10,7 +10,7 @@ method list and ``method_options`` (:mod:`benchmarks.grid_plan`), and the speed 
 and column order (:mod:`benchmarks.speed`). Published weights name their
 method (``Published.method`` in :mod:`baselines.learned.published`).
 
-Adding a method means adding its record here (and its code); ``tests/test_methods.py`` checks that
+Adding a method means adding its record to ``baselines/methods.yaml`` (and its code); ``tests/test_methods.py`` checks that
 every record composes, registers a pair and appears in the tables.
 
     python -m baselines                  # the registry as a Markdown table: key, name, kind, paper, code
@@ -22,9 +22,11 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal, get_args
 
 from src.errors import ConfigError
+from src.records import load_records
 
 Kind = Literal["classical", "learned"]
 KINDS: tuple[str, ...] = get_args(Kind)
@@ -95,88 +97,8 @@ class Method:
         return {"checkpoint": None, "weights": None} if self.kind == "learned" else {}
 
 
-METHODS: tuple[Method, ...] = (
-    Method("icp", "ICP", "classical", target="baselines.classical.icp:ICP", table1=0, speed=0, default_grid=True,
-           paper="Besl & McKay, A Method for Registration of 3-D Shapes, TPAMI 1992",
-           code="https://github.com/isl-org/Open3D"),
-    Method("fgr", "FGR", "classical", target="baselines.classical.fgr:FGR", table1=3, speed=1, default_grid=True,
-           paper="Zhou, Park & Koltun, Fast Global Registration, ECCV 2016",
-           code="https://github.com/isl-org/FastGlobalRegistration"),
-    Method("goicp", "Go-ICP", "classical", target="baselines.classical.goicp:GoICP", table1=1, speed=2,
-           default_grid=True, slow=True,
-           paper="Yang, Li, Campbell & Jia, Go-ICP: A Globally Optimal Solution to 3D ICP Point-Set Registration, "
-                 "TPAMI 2016",
-           code="https://github.com/yangjiaolong/Go-ICP"),
-    Method("symmetric_icp", "Symmetric ICP", "classical", target="baselines.classical.symmetric_icp:SymmetricICP",
-           aliases=("symicp",), table1=2, speed=3, default_grid=True,
-           paper="Rusinkiewicz, A Symmetric Objective Function for ICP, ACM TOG (SIGGRAPH) 2019",
-           code="https://gfx.cs.princeton.edu/proj/trimesh2/"),
-    Method("ransac", "RANSAC (FPFH)", "classical", target="baselines.classical.ransac:RANSAC", default_grid=True,
-           aliases=("ransac_fpfh",),
-           paper="Fischler & Bolles, Random Sample Consensus, CACM 1981; features: Rusu, Blodow & Beetz, Fast Point "
-                 "Feature Histograms (FPFH) for 3D Registration, ICRA 2009",
-           code="https://github.com/isl-org/Open3D"),
-    Method("ransac_icp", "RANSAC (FPFH) + ICP", "classical", target="baselines.classical.ransac:RANSACICP",
-           default_grid=True,
-           paper="Fischler & Bolles, Random Sample Consensus, CACM 1981; refined by ICP (Besl & McKay, TPAMI 1992)",
-           code="https://github.com/isl-org/Open3D"),
-    Method("point_to_plane_icp", "Point-to-plane ICP", "classical",
-           target="baselines.classical.open3d_icp:PointToPlaneICP", aliases=("plane_icp",), default_grid=True,
-           paper="Chen & Medioni, Object Modelling by Registration of Multiple Range Images, IVC 1992",
-           code="https://github.com/isl-org/Open3D"),
-    Method("gicp", "GICP", "classical", target="baselines.classical.open3d_icp:GeneralizedICP",
-           aliases=("generalized_icp",), default_grid=True,
-           paper="Segal, Haehnel & Thrun, Generalized-ICP, RSS 2009",
-           code="https://github.com/isl-org/Open3D"),
-    Method("small_gicp", "small_gicp", "classical", target="baselines.classical.smallgicp:SmallGICP",
-           default_grid=True,
-           paper="Koide, small_gicp: Efficient and parallel algorithms for point cloud registration, JOSS 2024",
-           code="https://github.com/koide3/small_gicp"),
-    # CPD (~7 s a pair of 768 points on 2 cores) and FilterReg (probreg: compiled from its sdist) are named, not default
-    Method("cpd", "CPD", "classical", target="baselines.classical.cpd:CPD", aliases=("coherent_point_drift",), slow=True,
-           paper="Myronenko & Song, Point Set Registration: Coherent Point Drift, TPAMI 2010",
-           code="https://github.com/siavashk/pycpd"),
-    Method("filterreg", "FilterReg", "classical", target="baselines.classical.filterreg:FilterReg",
-           paper="Gao & Tedrake, FilterReg: Robust and Efficient Probabilistic Point-Set Registration using Gaussian "
-                 "Filter and Twist Parameterization, CVPR 2019",
-           code="https://github.com/neka-nat/probreg"),
-    Method("identity", "Identity (no registration)", "classical", target="baselines.classical.identity:Identity"),
-    Method("omnet", "OMNet", "learned", network="src.models.omnet.OMNet", aliases=("ours",), ours=True,
-           paper="Xu, Liu, Ye, Zhang, Zeng & Liu, OMNet: Learning Overlapping Mask for Partial-to-Partial Point "
-                 "Cloud Registration, ICCV 2021",
-           code="https://github.com/megvii-research/OMNet"),
-    Method("dcp", "DCP", "learned", network="baselines.learned.dcp.DCP", table1=5, speed=5,
-           paper="Wang & Solomon, Deep Closest Point: Learning Representations for Point Cloud Registration, "
-                 "ICCV 2019",
-           code="https://github.com/WangYueFt/dcp"),
-    Method("prnet", "PRNet", "learned", network="baselines.learned.prnet.PRNet", table1=7, speed=6,
-           paper="Wang & Solomon, PRNet: Self-Supervised Learning for Partial-to-Partial Registration, NeurIPS 2019",
-           code="https://github.com/WangYueFt/prnet"),
-    Method("rpmnet", "RPMNet", "learned", network="baselines.learned.rpmnet.RPMNet", table1=6, speed=8,
-           paper="Yew & Lee, RPM-Net: Robust Point Matching using Learned Features, CVPR 2020",
-           code="https://github.com/yewzijian/RPMNet"),
-    Method("idam", "IDAM", "learned", network="baselines.learned.idam.IDAM", table1=9, speed=9,
-           paper="Li, Zhang, Zhu, Tang & Yin, Iterative Distance-Aware Similarity Matrix Convolution with "
-                 "Mutual-Supervised Point Elimination for Efficient Point Cloud Registration, ECCV 2020",
-           code="https://github.com/jiahaowork/idam"),
-    Method("pointnetlk", "PointNetLK", "learned", network="baselines.learned.pointnetlk.PointNetLK", table1=4,
-           speed=4,
-           paper="Aoki, Goforth, Srivatsan & Lucey, PointNetLK: Robust & Efficient Point Cloud Registration using "
-                 "PointNet, CVPR 2019",
-           code="https://github.com/hmgoforth/PointNetLK"),
-    Method("pointnetlk_revisited", "PointNetLK-Revisited", "learned",
-           network="baselines.learned.pointnetlk_revisited.PointNetLKRevisited",
-           paper="Li, Pontes & Lucey, PointNetLK Revisited, CVPR 2021",
-           code="https://github.com/Lilac-Lee/PointNetLK_Revisited"),
-    Method("fmr", "FMR", "learned", network="baselines.learned.fmr.FMR", table1=8, speed=7,
-           paper="Huang, Mei & Zhang, Feature-Metric Registration: A Fast Semi-Supervised Approach for Robust Point "
-                 "Cloud Registration without Correspondences, CVPR 2020",
-           code="https://github.com/XiaoshuiHuang/fmr"),
-    Method("deepgmr", "DeepGMR", "learned", network="baselines.learned.deepgmr.DeepGMR", table1=10, speed=10,
-           paper="Yuan, Eckart, Kim, Jampani, Fox & Kautz, DeepGMR: Learning Latent Gaussian Mixture Models for "
-                 "Registration, ECCV 2020",
-           code="https://github.com/wentaoyuan/deepgmr"),
-)
+#: The records of ``baselines/methods.yaml``, in its order.
+METHODS: tuple[Method, ...] = load_records(Path(__file__).with_name("methods.yaml"), Method)
 
 
 def spelling(name: Any) -> str:

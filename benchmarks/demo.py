@@ -202,7 +202,7 @@ def own_test_pairs(run: Run, overrides: Sequence[str]) -> int | None:
 def _learned(target: str, where: str) -> Method:
     method = method_of_network(target)
     if method is None:
-        raise ConfigError(f"{where} holds a {target} network, which is no method of baselines/methods.py")
+        raise ConfigError(f"{where} holds a {target} network, which is no method of baselines/methods.yaml")
     return method
 
 

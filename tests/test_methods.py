@@ -1,4 +1,4 @@
-"""The method registry (baselines/methods.py): every record composes, registers a pair, appears in the
+"""The method registry (baselines/methods.yaml, baselines/methods.py): every record composes, registers a pair, appears in the
 tables in the paper's order with its display name, and is what the grid, the paper matching, the
 adapters and the published weights derive from."""
 

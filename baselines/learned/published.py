@@ -1,6 +1,6 @@
 """Weights published by other projects, imported into this framework's networks.
 
-:data:`PUBLISHED` names every known file (``official:<name>``): where it lies (``../shared/weights/``,
+:data:`PUBLISHED` (the records of ``published.yaml``) names every known file (``official:<name>``): where it lies (``../shared/weights/``,
 :func:`src.paths.shared_path`), its sha256, the network it fits (a ``conf/model`` config plus
 overrides), the protocol it was trained under (``conf/exp/<protocol>.yaml``), what its authors report
 and its license. ``weights=`` accepts such a name or the path of a file of a known layout: a file named as a registered one is
@@ -32,6 +32,7 @@ from src.compose import compose_model_config
 from src.data.cache import file_sha256
 from src.errors import CheckpointError, ConfigError
 from src.paths import shared_path
+from src.records import load_records
 
 OFFICIAL = "official:"
 
@@ -62,70 +63,8 @@ class Published:
             raise ConfigError(f"published weights {self.name}: {self.method} is not the key of a learned method")
 
 
-PUBLISHED: dict[str, Published] = {p.name: p for p in (
-    Published(
-        name="dcp_v1",
-        file="dcp_v1.t7",
-        sha256="797d34fa5ef98593397233f2791225c38d8e45b02ce63041dd53643f74d081c1",
-        layout="dcp",
-        source="WangYueFt/dcp @ 43671b5, pretrained/dcp_v1.t7",
-        license="MIT (the repository's README)",
-        trained_on="ModelNet40, all 40 categories, train split, 1,024 points, clean, target = transformed source "
-                   "(once-sampled), Euler angles U[0°, 45°], t U[±0.5] (README's DCP-v1 command; data.py, main.py)",
-        method="dcp",
-        model="dcp_v1",
-        protocol="dcp_protocol",
-        reported={"RMSE(R)": 2.545697, "MAE(R)": 1.505548},
-        reported_source="Wang & Solomon, ICCV 2019, Table 5 (DGCNN + DCP-v1; the Table-1 experiment: ModelNet40, "
-                        "unseen point clouds); MSE(R) 6.480572. Its translation errors could not be read offline here.",
-    ),
-    Published(
-        name="learning3d_pointnetlk",
-        file="learning3d_pointnetlk.t7",
-        sha256="27549313110416815fc9b1776983b80406e4d4572d57f67f1a6f3ede0745481d",
-        layout="learning3d_pointnetlk",
-        source="vinits5/learning3d @ f9d6d17, pretrained/exp_pnlk/models/best_model.t7",
-        license="MIT",
-        trained_on="ModelNet40, all categories, train split, 1,024 points, clean full clouds, source = twist of magnitude "
-                   "U[0, 0.8] applied to the template; features from the classifier below "
-                   "(examples/train_PointNetLK.py, data_utils/dataloaders.py PNLKTransform(0.8, True))",
-        method="pointnetlk",
-        model="pointnetlk",
-        # learning3d tests with PointNetLK.forward's default maxiter=10 (examples/test_pnlk.py, models/pointnetlk.py:33)
-        model_overrides=("model.network.eval_max_iter=10",),
-        protocol="pointnetlk_protocol",
-        reported={"test loss": 0.134726},
-        reported_source="learning3d pretrained/exp_pnlk/run.log, best test loss (FrobeniusNormLoss of its own est_T "
-                        "+ summed squared feature residual, batches of 8, ModelNet40 test split)",
-    ),
-    Published(
-        name="learning3d_pointnet_classifier_features",
-        file="learning3d_pointnet_classifier_features.t7",
-        sha256="90ef1479ff4fa60417c226405ec687cc04e668cd2c09e669acd29301fc969af3",
-        layout="learning3d_pointnet",
-        source="vinits5/learning3d @ f9d6d17, pretrained/exp_classifier/models/best_ptnet_model.t7",
-        license="MIT",
-        trained_on="ModelNet40 40-class classification, 1,024 points (examples/train_pointnet.py): the features "
-                   "PointNetLK starts from (model.network.feature_init)",
-        reported={"test accuracy": 0.871961},
-        reported_source="learning3d pretrained/exp_classifier/run.log, epoch 200",
-    ),
-    Published(
-        name="pointnetlk_revisited",
-        file="pointnetlk_revisited_modelnet40.pth",
-        sha256="ee92c44ca91df52f96444d80052856375fbfa194b82f7c53b612d5a8e8e12390",
-        layout="pointnetlk_revisited",
-        source="Lilac-Lee/PointNetLK_Revisited @ 7494c01, logs/model_trained_on_ModelNet40_model_best.pth",
-        license="MIT",
-        trained_on="ModelNet40, first 20 categories (dataset/modelnet40_half1.txt), 1,000 points scaled into the unit "
-                   "cube, clean, twists of magnitude U[0, 0.8] (train.py defaults)",
-        method="pointnetlk_revisited",
-        model="pointnetlk_revisited",
-        protocol="pointnetlk_revisited_protocol",
-        reported_source="none: the README reports no numbers, and the paper's ModelNet40 tables are not available "
-                        "offline here",
-    ),
-)}
+#: The records of ``published.yaml``, by name.
+PUBLISHED: dict[str, Published] = {p.name: p for p in load_records(Path(__file__).with_name("published.yaml"), Published)}
 
 
 # --- resolving names and files ------------------------------------------------------------------------
