@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Sequence
 
-from benchmarks.cpu_recipes import CPU_TRAINING_ENV, code_version, run_each, train_logged
+from benchmarks.cpu_recipes import CPU_TRAINING_ENV, add_run_parser, code_version, run_each, train_logged
 from src.errors import ConfigError, exit_code_of
 
 #: The learned methods of the grid, in the grid's order.
@@ -271,11 +271,7 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] = METHODS) -> lis
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.cpu_budget", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="train the methods (resumable)")
-    run.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
-    run.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated, of: {', '.join(METHODS)}")
-    run.add_argument("--budget-h", type=float, default=1.0, help="CPU hours per method, one thread (default 1)")
-    run.add_argument("--parallel", type=int, default=2, help="methods trained at once, one thread each (default 2)")
+    run = add_run_parser(sub, "methods", METHODS, ("--budget-h", 1.0, "CPU hours"), parallel=2)
     run.add_argument("--archive", type=Path, default=None,
                      help="archive each method's record here when its run returns (e.g. benchmarks/results/cpu_budget_runs)")
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")

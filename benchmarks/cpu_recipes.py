@@ -140,6 +140,20 @@ def run_recipe(name: str, root: Path, budget_min: float, val_every: int) -> str:
     return f"{name}: finished {plan['max_steps']} steps"
 
 
+def add_run_parser(sub: argparse._SubParsersAction, what: str, known: Sequence[str], budget: tuple[str, float, str],
+                   parallel: int) -> argparse.ArgumentParser:
+    """The ``run`` sub-command shared by the training studies: ``--root``, ``--<what>`` (comma-separated, of
+    ``known``), the budget flag (``(flag, default, unit)``) and ``--parallel`` (default ``parallel``)."""
+    flag, default, unit = budget
+    run = sub.add_parser("run", help=f"train the {what} (resumable)")
+    run.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
+    run.add_argument(f"--{what}", default=",".join(known), help=f"comma-separated, of: {', '.join(known)}")
+    run.add_argument(flag, type=float, default=default, help=f"{unit} per {what[:-1]}, one thread (default {default:g})")
+    run.add_argument("--parallel", type=int, default=parallel,
+                     help=f"{what} trained at once, one thread each (default {parallel})")
+    return run
+
+
 def run_each(names: str, known: Sequence[str], what: str, budget: tuple[str, float], parallel: int,
              run_one: Callable[[str], str]) -> None:
     """``run_one`` for each of the comma-separated ``names`` (all of ``known``), ``parallel`` at once, printing
@@ -231,12 +245,8 @@ def report(roots: list[Path], out: Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="train the recipes (resumable)")
-    run.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
-    run.add_argument("--recipes", default=",".join(RECIPES), help=f"comma-separated, of: {', '.join(RECIPES)}")
-    run.add_argument("--budget-min", type=float, default=30.0, help="CPU minutes per recipe (default 30)")
+    run = add_run_parser(sub, "recipes", RECIPES, ("--budget-min", 30.0, "CPU minutes"), parallel=1)
     run.add_argument("--val-every", type=int, default=100, help="steps between validations (default 100)")
-    run.add_argument("--parallel", type=int, default=1, help="recipes trained at once, one thread each (default 1)")
     rep = sub.add_parser("report", help="curves, summary table and plot")
     rep.add_argument("--root", type=Path, required=True, nargs="+", help="one or more run folders")
     rep.add_argument("--out", type=Path, default=Path("benchmarks/results"))

@@ -14,7 +14,10 @@ False: 53 %, 11.1°; ``docs/methods/filterreg.md``).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -41,6 +44,13 @@ class FilterRegConfig(RegistratorConfig):
         _within(self, "w", interval="[0, 1)")
 
 
+@functools.cache
+def registration_filterreg() -> Callable[..., Any]:
+    """probreg's ``filterreg.registration_filterreg`` (imported on first use: an optional package)."""
+    from probreg import filterreg
+
+    return filterreg.registration_filterreg
+
 class FilterReg(NeedsPackage, Registrator):
     """probreg's rigid point-to-point FilterReg (optional package ``probreg``)."""
 
@@ -49,10 +59,8 @@ class FilterReg(NeedsPackage, Registrator):
     config_cls = FilterRegConfig
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        from probreg import filterreg
-
         cfg: FilterRegConfig = self.config
-        result = filterreg.registration_filterreg(
+        result = registration_filterreg()(
             src, ref, sigma2=cfg.sigma2, update_sigma2=bool(cfg.update_sigma2), w=float(cfg.w),
             maxiter=int(cfg.max_iterations), tol=float(cfg.tolerance), min_sigma2=float(cfg.min_sigma2),
         )
