@@ -50,7 +50,7 @@ def check_checkpoint(path: str | Path, expected_target: str, resume: bool = Fals
                      model: DictConfig | None = None) -> dict[str, Any]:
     """The checkpoint's hyper-parameters, after :func:`read_checkpoint` and checking it holds an
     ``expected_target`` network (and, with ``resume``, the optimiser and loop states resuming needs,
-    and the architecture of the ``model`` config: :func:`check_architecture`)."""
+    and, given the ``model`` config, its architecture: :func:`check_architecture`)."""
     checkpoint = read_checkpoint(path)
     hparams = checkpoint["hyper_parameters"]
     found = hparams["network"]["_target_"]
@@ -63,7 +63,7 @@ def check_checkpoint(path: str | Path, expected_target: str, resume: bool = Fals
             f"{path} holds weights only, no training state to resume: resume from a run's checkpoints/last.ckpt, "
             "or evaluate it with src.eval"
         )
-    if resume and model is not None:
+    if model is not None:
         check_architecture(path, checkpoint, model)
     return hparams
 
@@ -94,8 +94,8 @@ def check_architecture(path: str | Path, checkpoint: dict[str, Any], model: Dict
         key = next(k for k in sorted(set(expected) | set(found)) if expected.get(k) != found.get(k))
         compared = f"{key}: checkpoint {found.get(key)}, config {expected.get(key)}"
     raise CheckpointError(
-        f"{path} holds another architecture than the config (model.network: {compared}): resume with the "
-        "checkpoint's settings, or start a new run without ckpt_path"
+        f"{path} holds another architecture than the config (model.network: {compared}): train with the "
+        "checkpoint's settings, or start a new run without it"
     )
 
 

@@ -53,6 +53,9 @@ def resolve_checkpoint(cfg: DictConfig) -> str:
 
 def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
     """The module to evaluate and what it was loaded from (``weights`` or a checkpoint)."""
+    if cfg.get("init_weights"):
+        raise ConfigError(f"init_weights={cfg.init_weights} is for src.train (a start for training): evaluate the "
+                          "checkpoint with ckpt_path=PATH")
     weights = cfg.get("weights")
     if not weights:
         ckpt_path = resolve_checkpoint(cfg)

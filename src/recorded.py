@@ -6,7 +6,8 @@ line (the key and why), instead of being written into ``config_resolved.yaml`` a
   evaluation study labelled by it would print the same numbers under each label. (The metric convention
   ``model.euler_seq`` does take effect: it follows the experiment. Training-only settings, e.g. an override
   list shared with ``src.train``, change no evaluated number and pass.)
-* ``src.train`` trains from scratch or resumes from ``ckpt_path``: ``weights=`` is for ``src.eval``; a
+* ``src.train`` trains from scratch, from a checkpoint's weights (``init_weights``) or resumes from
+  ``ckpt_path`` (not both): ``weights=`` is for ``src.eval``; a
   checkpoint selected on validation (``callbacks.checkpoint.monitor``) needs a validation that runs
   (``trainer.limit_val_batches=0`` turns it off) and a checkpoint kept (``save_top_k=0`` keeps none): else
   the test would run on the last weights, not the selected ones (:func:`refuse_unused_in_train`).
@@ -61,8 +62,12 @@ def refuse_unused_in_train(cfg: DictConfig) -> None:
     """ConfigError for ``weights=`` in ``src.train`` (it would be ignored), and for a checkpoint selection on
     validation that cannot select (module docstring)."""
     if cfg.get("weights"):
-        raise ConfigError(f"weights={cfg.weights}: src.train does not load weights (src.eval does): it trains from "
-                          "scratch, or resumes with ckpt_path=<run dir>/checkpoints/last.ckpt")
+        raise ConfigError(f"weights={cfg.weights}: src.train does not load published weights (src.eval does): it "
+                          "trains from scratch, from a checkpoint's weights (init_weights=PATH), or resumes with "
+                          "ckpt_path=<run dir>/checkpoints/last.ckpt")
+    if cfg.get("init_weights") and cfg.get("ckpt_path"):
+        raise ConfigError(f"init_weights={cfg.init_weights} and ckpt_path={cfg.ckpt_path}: a resumed run keeps its own "
+                          "weights; give one of the two")
     checkpoint = (cfg.get("callbacks") or {}).get("checkpoint")
     monitor = checkpoint.get("monitor") if checkpoint is not None else None
     if not monitor or cfg.trainer.get("fast_dev_run"):  # (fast_dev_run validates one batch whatever the limits)

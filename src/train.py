@@ -4,6 +4,7 @@
     python -m src.train +exp=unseen_categories            # the paper's experiment on ModelNet40 (once prepared)
     python -m src.train +exp=unseen_shapes data=synthetic trainer=smoke   # a few-minute CPU pipeline check
     python -m src.train ... ckpt_path=outputs/.../checkpoints/last.ckpt   # resume
+    python -m src.train ... init_weights=checkpoints/<name>.ckpt          # start from a checkpoint's weights
     python -m src.train -m +sweep=noise                   # a paper study as a sweep (docs/sweeps.md)
 
 A failing job writes ``failure.json`` into its run dir; ``on_failure=auto`` (default) then goes on
@@ -26,7 +27,7 @@ import lightning as L
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
-from src.checkpoint_io import check_checkpoint
+from src.checkpoint_io import check_checkpoint, read_checkpoint
 from src.config import register_resolvers
 from src.errors import ConfigError
 from src.failures import job_main
@@ -92,10 +93,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
     require_prepared_paper_data(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
+    if cfg.init_weights:
+        check_checkpoint(cfg.init_weights, cfg.model.network._target_, model=cfg.model)
     save_resolved_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = build_module(cfg.model)
+    if cfg.init_weights:
+        module.load_state_dict(read_checkpoint(cfg.init_weights)["state_dict"])
     trainer = build_trainer(cfg)
     require_one_batch(datamodule, trainer)
     start = time.perf_counter()
@@ -108,7 +113,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
-                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path, **evaluated_record(trainer))
+                        global_step=trainer.global_step, resumed_from=cfg.ckpt_path,
+                        initialised_from=cfg.init_weights, **evaluated_record(trainer))
     return metrics
 
 

@@ -143,8 +143,8 @@ def test_resume_with_another_architecture_is_refused_in_one_line(uninterrupted, 
     recorded = (tmp / "full" / "config_resolved.yaml").read_text()
     with pytest.raises(CheckpointError) as info:
         train(tiny_config(tmp, *RESUME_RUN, change, f"output_dir={tmp / 'full'}", f"ckpt_path={last}"))
-    assert str(info.value) == (f"{last} holds another architecture than the config (model.network: {compared}): resume "
-                               "with the checkpoint's settings, or start a new run without ckpt_path")
+    assert str(info.value) == (f"{last} holds another architecture than the config (model.network: {compared}): train "
+                               "with the checkpoint's settings, or start a new run without it")
     assert (tmp / "full" / "config_resolved.yaml").read_text() == recorded
 
 
