@@ -9,6 +9,7 @@ official code's, ``recipe=omnet_official``) with the schedule mapped onto the st
 inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its ``last.ckpt``.
 
     python -m benchmarks.cpu_budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2] [--archive DIR]
+    python -m benchmarks.cpu_budget beyond --root RUNS --method omnet --recipe omnet_cpu --budget-h 1.5 [--init-weights CKPT]
     python -m benchmarks.cpu_budget archive --root RUNS --out benchmarks/results/cpu_budget_runs
     python -m benchmarks.cpu_budget_report --root benchmarks/results/cpu_budget_runs --out benchmarks/results
 
@@ -32,7 +33,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from benchmarks.cpu_recipes import CPU_TRAINING_ENV, add_run_parser, code_version, run_each, train_logged
 from src.errors import ConfigError, exit_code_of
@@ -60,11 +61,13 @@ PROTOCOL = [
 ]
 
 
-def compose_recipe(model: str) -> Any:
-    """The model's training recipe as ``src.train`` composes it (``model=<model>`` plus its recipe)."""
+def compose_recipe(model: str, recipe: str | None = None) -> Any:
+    """The model's training recipe as ``src.train`` composes it (``model=<model>`` plus its recipe: ``recipe``, or
+    the study's, :data:`RECIPE_OF`)."""
     from src.compose import compose_conf
 
-    return compose_conf([f"model={model}"] + ([f"recipe={RECIPE_OF[model]}"] if model in RECIPE_OF else []))
+    recipe = recipe or RECIPE_OF.get(model)
+    return compose_conf([f"model={model}"] + ([f"recipe={recipe}"] if recipe else []))
 
 
 def budget_schedule(cfg: Any) -> list[str]:
@@ -190,6 +193,25 @@ def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[
             "stages": [vars(s) for s in stages], "code": code_version()}
 
 
+#: The folder of a method's run beyond the equal budget (issue 21 §6), beside the method's own.
+BEYOND = "_beyond"
+
+
+def plan_beyond(method: str, recipe: str, budget_h: float, init_weights: str | None = None,
+                probe=probe_step_seconds) -> dict[str, Any]:
+    """A run of ``method`` beyond the equal budget: ``recipe`` as it is (its width, batch and a schedule that spans
+    the run), the steps ``budget_h`` buys at the probed step cost, optionally starting from ``init_weights``."""
+    cfg = compose_recipe(method, recipe)
+    width, batch = float(cfg.model_scale), int(cfg.data.batch_size)
+    step_s = probe(method, width, batch)
+    if not math.isfinite(step_s):
+        raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} (out of memory?)")
+    overrides = [f"recipe={recipe}"] + ([f"init_weights={init_weights}"] if init_weights else [])
+    stage = Stage(method, method, width, batch, step_s, budget_h, _steps_for(budget_h * 3600, step_s), overrides)
+    return {"method": method, "beyond": recipe, "budget_cpu_h": budget_h, "width": width,
+            "probe_step_cpu_s": {str(width): step_s}, "stages": [vars(stage)], "code": code_version()}
+
+
 def stage_command(stage: Stage, run_dir: Path, extra: list[str]) -> list[str]:
     """The ``src.train`` command line of one stage (resuming from its ``last.ckpt`` when there is one)."""
     protocol = [o for o in PROTOCOL if not (stage.model == CLASSIFIER["model"] and o.startswith(("+exp=", "sampling=", "partial=")))]
@@ -212,14 +234,17 @@ def best_checkpoint(run_dir: Path) -> Path:
 _PLANNING = threading.Lock()
 
 
-def run_method(method: str, root: Path, budget_h: float) -> str:
-    """Plan (once), then train each stage of ``method`` to its steps (resuming); a one-line status."""
-    method_dir = root / method
+def run_method(method: str, root: Path, budget_h: float, folder: str | None = None,
+               planner: Callable[[], dict[str, Any]] | None = None) -> str:
+    """Plan (once: ``planner``, by default :func:`plan_method`), then train each stage of ``method`` to its steps
+    (resuming) in ``root/<folder>`` (by default the method's name); a one-line status."""
+    method_dir = root / (folder or method)
     method_dir.mkdir(parents=True, exist_ok=True)
     plan_file = method_dir / "plan.json"
     with _PLANNING:
         if not plan_file.is_file():
-            plan_file.write_text(json.dumps(plan_method(method, budget_h), indent=2))
+            plan = planner() if planner else plan_method(method, budget_h)
+            plan_file.write_text(json.dumps(plan, indent=2))
     plan = json.loads(plan_file.read_text())
     extra: list[str] = []
     for stage in (Stage(**s) for s in plan["stages"]):
@@ -231,18 +256,25 @@ def run_method(method: str, root: Path, budget_h: float) -> str:
             (run_dir / "command.txt").write_text(" ".join(command[1:]) + "\n")
             code = train_logged(run_dir, command)
             if code != 0:
-                return f"{method}/{stage.name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
+                return f"{method_dir.name}/{stage.name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
             done.write_text(json.dumps({"stage": vars(stage), "command": " ".join(command[1:])}, indent=2))
         extra = [f"model.network.feature_init={best_checkpoint(run_dir)}"]  # the next stage starts from these features
-    return f"{method}: done"
+    return f"{method_dir.name}: done"
 
 
 #: A stage's record: what ran (command, plan), its logs and its test metrics; checkpoints stay in the run folder.
 RECORD_FILES = ("command.txt", "done.json", "metrics.json")
 
 
-def archive_runs(root: Path, out: Path, methods: Sequence[str] = METHODS) -> list[str]:
-    """Copy the record of each of ``methods`` run under ``root`` into ``out`` (replacing its older copy)."""
+def run_folders(root: Path) -> list[str]:
+    """The run folders under ``root`` in the grid's order: each method's, then its run beyond the budget."""
+    return [name for m in METHODS for name in (m, m + BEYOND) if (root / name / "plan.json").is_file()]
+
+
+def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) -> list[str]:
+    """Copy the record of each run folder (``methods``, by default all: :func:`run_folders`) under ``root`` into
+    ``out`` (replacing its older copy)."""
+    methods = run_folders(root) if methods is None else methods
     archived = []
     for method in methods:
         plan = root / method / "plan.json"
@@ -274,6 +306,13 @@ def main(argv: list[str] | None = None) -> int:
     run = add_run_parser(sub, "methods", METHODS, ("--budget-h", 1.0, "CPU hours"), parallel=2)
     run.add_argument("--archive", type=Path, default=None,
                      help="archive each method's record here when its run returns (e.g. benchmarks/results/cpu_budget_runs)")
+    beyond = sub.add_parser("beyond", help="train one method beyond the budget with a recipe (resumable)")
+    beyond.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
+    beyond.add_argument("--method", required=True, choices=METHODS)
+    beyond.add_argument("--recipe", required=True, help="conf/recipe/<name>.yaml, taken as it is (e.g. omnet_cpu)")
+    beyond.add_argument("--budget-h", type=float, required=True, help="CPU hours of this run, one thread")
+    beyond.add_argument("--init-weights", default=None, help="start from this checkpoint's weights (src.train init_weights)")
+    beyond.add_argument("--archive", type=Path, default=None, help="archive the run's record here when it returns")
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/results/cpu_budget_runs"))
@@ -282,6 +321,14 @@ def main(argv: list[str] | None = None) -> int:
     def action() -> None:
         if args.command == "archive":
             print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
+            return
+        if args.command == "beyond":
+            folder = args.method + BEYOND
+            planner = lambda: plan_beyond(args.method, args.recipe, args.budget_h, args.init_weights)  # noqa: E731
+            run_each(args.method, METHODS, "methods", ("--budget-h", args.budget_h), 1,
+                     lambda m: run_method(m, args.root, args.budget_h, folder, planner))
+            if args.archive is not None:
+                archive_runs(args.root, args.archive, [folder])
             return
         def run_one(method: str) -> str:
             status = run_method(method, args.root, args.budget_h)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.cpu_budget import METHODS, Stage
+from benchmarks.cpu_budget import Stage, run_folders
 from src.errors import ConfigError, exit_code_of
 from src.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
@@ -83,7 +83,7 @@ def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
 
 def collect(root: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(curves of every method under ``root``, the summary table), in the grid's method order."""
-    dirs = [root / m for m in METHODS if (root / m / "plan.json").is_file()]
+    dirs = [root / name for name in run_folders(root)]
     if not dirs:
         raise ConfigError(f"no method run under {root}: run `python -m benchmarks.cpu_budget run --root {root}` first")
     curves, rows = [], []

@@ -171,3 +171,28 @@ def test_run_archives_each_method_when_it_returns(tmp_path, monkeypatch):
     monkeypatch.setattr(cpu_budget, "run_method", fake_run)
     assert cpu_budget.main(["run", "--root", str(tmp_path / "runs"), "--methods", "dcp,fmr", "--archive", str(tmp_path / "a")]) == 0
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["dcp", "fmr"] and (tmp_path / "a" / "fmr" / "plan.json").is_file()
+
+
+def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_beside_the_method(tmp_path, monkeypatch):
+    from benchmarks.cpu_budget_report import collect
+
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 1.5, "checkpoints/start.ckpt", probe=lambda m, w, b: 2.0)
+    (stage,) = plan["stages"]
+    recipe = compose_recipe("omnet", "omnet_cpu")
+    assert (stage["width"], stage["batch"]) == (recipe.model_scale, recipe.data.batch_size)
+    assert stage["max_steps"] == int(1.5 * 3600 / (2.0 * OVERHEAD))
+    assert stage["overrides"] == ["recipe=omnet_cpu", "init_weights=checkpoints/start.ckpt"] and plan["beyond"] == "omnet_cpu"
+    commands = []
+
+    def train(run_dir: Path, command: list[str]) -> int:
+        commands.append(command)
+        _fake_stage(run_dir, [{"step": 9, "time/cpu_hours": 0.7, "val/Error(R)": 15.0, "val/Error(t)": 0.1}],
+                    {"Error(R)": 16.0, "Error(t)": 0.1}, done=False)
+        return 0
+
+    monkeypatch.setattr(cpu_budget, "train_logged", train)
+    assert cpu_budget.run_method("omnet", tmp_path, 1.5, "omnet_beyond", lambda: plan) == "omnet_beyond: done"
+    assert "recipe=omnet_cpu" in commands[0] and "init_weights=checkpoints/start.ckpt" in commands[0]
+    assert cpu_budget.run_folders(tmp_path) == ["omnet_beyond"]
+    curves, table = collect(tmp_path)
+    assert list(curves["method"]) == ["omnet_beyond"] and table.loc[0, "test Error(R)"] == 16.0
