@@ -21,6 +21,8 @@ from src.errors import ConfigError, exit_code_of
 from src.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
+#: The process's torch.mm rate, logged at each validation (src.callbacks.TrainingClock): what a CPU hour bought.
+MM_RATE = "time/mm_gflops"
 CURVE_COLUMNS = {"time/cpu_hours": "cpu_hours", VAL_ERROR_R: ERROR_R, VAL_ERROR_T: ERROR_T}
 
 
@@ -68,6 +70,8 @@ def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
     row = {"method": method_dir.name, "width": plan["width"], "batch": last.batch, "steps": steps[-1],
            "planned steps": last.max_steps, "pairs seen": steps[-1] * last.batch,
            "CPU h": sum(_stage_cpu_hours(frame) for frame in logs if not frame.empty)}
+    rates = [value for frame in logs if MM_RATE in frame for value in frame[MM_RATE].dropna()]
+    row["mm GFLOP/s"] = float(pd.Series(rates).median()) if rates else None  # the machine's speed during the run
     if len(stages) > 1:
         row["steps"] = " + ".join(str(n) for n in steps)
         row["pairs seen"] = sum(n * s.batch for n, s in zip(steps, stages))

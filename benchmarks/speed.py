@@ -9,7 +9,6 @@ the distance to the machine's limit and the outputs: ``docs/methods/speed.md``.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import platform
 import statistics
@@ -27,6 +26,7 @@ from baselines import get_registrator, resolve_registrator
 from baselines.base import Registrator
 from baselines.methods import default_speed_methods, display_name, find_method, paper_rank
 from src.errors import ConfigError, exit_code_of
+from src.machine_speed import CLOCKS, MM_REFERENCE, MatmulReference
 
 DEFAULT_SIZES = (512, 1024, 2048, 4096)
 PAPER_SPEED_CSV = "supp_speed_ms.csv"
@@ -58,37 +58,7 @@ def make_pair(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return src.astype(np.float32).astype(np.float64), ref.astype(np.float32).astype(np.float64)
 
 
-# --- distance to the machine's limit -------------------------------------------------------------------
-
-MM_REFERENCE = (4096, 1024, 1024)  # the reference product: (M, K) by (K, N)
-CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
-
-
-class MatmulReference:
-    """The machine's matrix-product rate: GFLOP/s of ``torch.mm`` of MM_REFERENCE (several per timing on a GPU)."""
-
-    def __init__(self, device: str, dtype: Any = None, clock: str = "wall") -> None:
-        import torch
-
-        m, k, n = MM_REFERENCE
-        generator = torch.Generator().manual_seed(0)
-        self.a = torch.randn(m, k, generator=generator).to(device, dtype or torch.float32)
-        self.b = torch.randn(k, n, generator=generator).to(device, dtype or torch.float32)
-        self.repeats = 1 if device == "cpu" else 20
-        self.sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
-        self.clock = CLOCKS[clock]
-        self.rate()  # warm-up
-
-    def rate(self) -> float:
-        import torch
-
-        self.sync()
-        start = self.clock()
-        for _ in range(self.repeats):
-            torch.mm(self.a, self.b)
-        self.sync()
-        return 2.0 * math.prod(MM_REFERENCE) * self.repeats / (self.clock() - start) / 1e9
-
+# --- distance to the machine's limit (the reference product: src.machine_speed) -------------------------
 
 def count_flops(call: Callable[[], Any]) -> int:
     """Matrix-product FLOPs of one ``call()`` (:class:`torch.utils.flop_counter.FlopCounterMode`)."""

@@ -33,7 +33,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from benchmarks.speed import CLOCKS, MatmulReference, count_flops, describe_device, format_rate
+from benchmarks.speed import count_flops, describe_device, format_rate
+from src.machine_speed import CLOCKS, MatmulReference
 from src.errors import ConfigError, exit_code_of
 
 

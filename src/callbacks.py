@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import random
+import statistics
 import time
 from typing import Any
 
 import lightning as L
 import numpy as np
 import torch
+
+from src.machine_speed import MatmulReference
 
 
 class RngState(L.Callback):
@@ -60,11 +63,17 @@ class TrainingClock(L.Callback):
 
     CPU time is the fair axis on a shared machine (wall time stretches with other load); with
     ``data.num_workers=0`` it includes pair generation. ``budget_cpu_hours`` stops training once the
-    training CPU time reaches it (a budget, whatever the step count).
+    training CPU time reaches it (a budget, whatever the step count). A CPU hour buys less on a loaded
+    machine, so on the CPU each validation also logs ``time/mm_gflops``, the process's ``torch.mm`` rate
+    (:class:`~src.machine_speed.MatmulReference`, CPU clock; median of ``mm_probes``, 0: off), counted as
+    evaluation time.
     """
 
-    def __init__(self, budget_cpu_hours: float | None = None) -> None:
+    def __init__(self, budget_cpu_hours: float | None = None, mm_probes: int = 3) -> None:
         self.budget_cpu_hours = budget_cpu_hours
+        self.mm_probes = mm_probes
+        self._mm: MatmulReference | None = None
+        self.mm_gflops: float | None = None
         self.cpu_seconds = 0.0
         self.wall_seconds = 0.0
         self.eval_cpu_seconds = 0.0
@@ -104,6 +113,9 @@ class TrainingClock(L.Callback):
         if self._fitting(trainer):
             self._tick()
             self._evaluating = True
+            if self.mm_probes > 0 and pl_module.device.type == "cpu":
+                self._mm = self._mm or MatmulReference("cpu", clock="cpu")
+                self.mm_gflops = statistics.median(self._mm.rate() for _ in range(self.mm_probes))
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self._fitting(trainer):
@@ -126,3 +138,5 @@ class TrainingClock(L.Callback):
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self._fitting(trainer):
             self._log(pl_module)
+            if self.mm_gflops is not None:
+                pl_module.log("time/mm_gflops", self.mm_gflops)

@@ -186,7 +186,8 @@ def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_besid
 
     def train(run_dir: Path, command: list[str]) -> int:
         commands.append(command)
-        _fake_stage(run_dir, [{"step": 9, "time/cpu_hours": 0.7, "val/Error(R)": 15.0, "val/Error(t)": 0.1}],
+        _fake_stage(run_dir, [{"step": 9, "time/cpu_hours": 0.7, "val/Error(R)": 15.0, "val/Error(t)": 0.1,
+                               "time/mm_gflops": 50.0}],
                     {"Error(R)": 16.0, "Error(t)": 0.1}, done=False)
         return 0
 
@@ -196,3 +197,4 @@ def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_besid
     assert cpu_budget.run_folders(tmp_path) == ["omnet_beyond"]
     curves, table = collect(tmp_path)
     assert list(curves["method"]) == ["omnet_beyond"] and table.loc[0, "test Error(R)"] == 16.0
+    assert table.loc[0, "mm GFLOP/s"] == 50.0

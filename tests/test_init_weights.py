@@ -62,3 +62,12 @@ def test_eval_refuses_init_weights(start):
     tmp, ckpt = start
     with pytest.raises(ConfigError, match="init_weights=.* is for src.train"):
         evaluate(tiny_config(tmp, "+exp=unseen_shapes", f"init_weights={ckpt}", f"ckpt_path={ckpt}"))
+
+
+def test_each_validation_logs_the_process_mm_rate(start):
+    """The yardstick of a CPU hour on a shared machine (src.callbacks.TrainingClock)."""
+    from src.reporting import read_csv_logs
+
+    tmp, _ = start
+    rates = read_csv_logs(tmp / "start")["time/mm_gflops"].dropna()
+    assert len(rates) >= 1 and (rates > 0).all()
