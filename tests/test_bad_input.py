@@ -296,7 +296,7 @@ def test_eval_follows_the_experiments_metric_convention(tmp_path, cache):
 
 
 def test_train_refuses_weights(tmp_path, cache):
-    with pytest.raises(ConfigError, match=r"^weights=official:dcp_v1: src.train does not load weights"):
+    with pytest.raises(ConfigError, match=r"^weights=official:dcp_v1: src.train does not load published weights"):
         train(_tiny(cache, tmp_path, "weights=official:dcp_v1"))
 
 
