@@ -113,7 +113,7 @@ class TrainingClock(L.Callback):
         if self._fitting(trainer):
             self._tick()
             self._evaluating = True
-            if self.mm_probes > 0 and pl_module.device.type == "cpu":
+            if self.mm_probes > 0 and getattr(getattr(pl_module, "device", None), "type", None) == "cpu":
                 self._mm = self._mm or MatmulReference("cpu", clock="cpu")
                 self.mm_gflops = statistics.median(self._mm.rate() for _ in range(self.mm_probes))
 
