@@ -60,9 +60,12 @@ def test_default_grid_and_real_airplane_compose():
         assert list(cfg.benchmark.experiments) == ["unseen_shapes", "unseen_categories", "gaussian_noise"]
         assert cfg.data.dataset == "synthetic" and cfg.output_dir == "outputs/grid/synthetic"
         real = compose("benchmark_grid", overrides=["+benchmark=real_airplane"])
-        assert real.benchmark.name == "real_airplane" and list(real.benchmark.experiments) == ["real_airplane"]
+        assert real.benchmark.name == "real_airplane" and list(real.benchmark.experiments) == ["real_airplane", "real_airplane_noisy", "real_unseen_category"]
         assert list(real.benchmark.partials) == ["prnet"] and list(real.benchmark.samplings) == ["os", "ts"]
         assert real.data.dataset == "modelnet40_resampled" and real.output_dir == "outputs/grid/real_airplane"
+        learned = [m for m in real.benchmark.methods if real.method_options[m].get("checkpoint")]
+        assert {"omnet", "fmr"} <= set(learned)  # the shipped checkpoints, each a file of the repository
+        assert all(Path(real.method_options[m].checkpoint).is_file() for m in learned)
 
 
 def _by_hand(cache_root: Path, partial: str, method_pred) -> dict[str, float]:
