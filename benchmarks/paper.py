@@ -9,7 +9,8 @@ metric) names the same cell after normalisation (:func:`method_key`, :func:`cano
 upper-case sampling) **and** it ran the paper's protocol for that cell
 (:func:`protocol_mismatch`): ModelNet40, noise σ = 0.01 for the ``*_noise`` experiments and 0
 otherwise, N = 4 iterations, no overlap-ratio crop. Everything else gets no paper value, with the
-reason in ``paper_note``.
+reason in ``paper_note``. With ``any_dataset`` (``--paper-any-dataset``) the dataset is not checked and
+a real-data experiment is compared with the paper's cell it stands in for (:data:`PAPER_COUNTERPARTS`).
 """
 
 from __future__ import annotations
@@ -38,6 +39,15 @@ EXPERIMENT_LABELS = {
     "unseen_shapes_noise": "Gaussian noise (unseen shapes)",
     "unseen_categories_noise": "Unseen categories with Gaussian noise",
     "axisymmetric_z_rotation": "Axisymmetric categories, z rotations",
+    "real_airplane": "Real airplanes (the paper: unseen shapes)",
+    "real_airplane_noisy": "Real airplanes with Gaussian noise (the paper: Gaussian noise)",
+    "real_unseen_category": "Real airplanes to real bathtubs (the paper: unseen categories)",
+}
+#: Our real-data experiments -> the paper's cell each stands in for (other data: matched only with ``any_dataset``).
+PAPER_COUNTERPARTS = {
+    "real_airplane": "unseen_shapes",
+    "real_airplane_noisy": "unseen_shapes_noise",
+    "real_unseen_category": "unseen_categories",
 }
 PAPER_NOISE_SIGMA = 0.01
 PAPER_NUM_ITERS = 4
@@ -111,11 +121,18 @@ def _is_missing(value: Any) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value)) or value is pd.NA
 
 
+def paper_experiment(name: Any, any_dataset: bool = False) -> Any:
+    """The paper's experiment a row of ours is compared with: :func:`canonical_experiment`, and with
+    ``any_dataset`` a real-data experiment's counterpart (:data:`PAPER_COUNTERPARTS`)."""
+    name = canonical_experiment(name)
+    return PAPER_COUNTERPARTS.get(name, name) if any_dataset and isinstance(name, str) else name
+
+
 def protocol_mismatch(row: pd.Series | dict, any_dataset: bool = False) -> str | None:
     """Why a row of ours is not the paper's setting for its cell (None if it is). Columns that a
     frame does not have are not checked (a frame of the comparison grid need not carry them)."""
     get = row.get
-    experiment = str(get("experiment", ""))
+    experiment = str(paper_experiment(get("experiment", ""), any_dataset))
     dataset = get("dataset")
     if not any_dataset and not _is_missing(dataset) and dataset not in PAPER_DATASETS:
         return f"dataset {dataset} (the paper's numbers are ModelNet40)"
@@ -139,7 +156,7 @@ def attach_paper(frame: pd.DataFrame, paper: pd.DataFrame, any_dataset: bool = F
     out = frame.copy()
     keys = pd.DataFrame({
         "method_key": out["method"].map(method_key),
-        "experiment": out["experiment"].map(canonical_experiment),
+        "experiment": out["experiment"].map(lambda e: paper_experiment(e, any_dataset)),
         "sampling": out["sampling"].astype(str).str.upper(),
         "partial": out["partial"].astype(str).str.lower() if "partial" in out else "prnet",
         "metric": out["metric"],

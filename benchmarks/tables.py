@@ -50,7 +50,8 @@ from src.metrics import CHAMFER, ERROR_R, MAE_R, PAPER_METRICS, RMSE_R, SCORE, S
 HIGHER_IS_BETTER = SUCCESS_NAMES
 REQUIRED = ("method", "experiment", "sampling", "metric", "value")
 LAYOUTS = ("table1", "table2", "table3")
-EXPERIMENT_ORDER = ("unseen_shapes", "unseen_categories", "unseen_shapes_noise", "unseen_categories_noise")
+EXPERIMENT_ORDER = ("unseen_shapes", "real_airplane", "unseen_categories", "real_unseen_category",
+                    "unseen_shapes_noise", "real_airplane_noisy", "unseen_categories_noise")
 ABLATION_ORDER = ("B", "B+M", "B+M+ML", "B+M+ML+F", "B+M+ML+F+C")
 MISSING = "--"
 
@@ -207,6 +208,7 @@ def build_table(
     paper: pd.DataFrame | None = None,
     any_dataset: bool = False,
     experiments: Sequence[str] | None = None,
+    caption: str | None = None,
 ) -> Table:
     """The table of ``layout`` for a tidy frame (see the module docstring)."""
     if layout not in LAYOUTS:
@@ -284,7 +286,7 @@ def build_table(
         "table2": "Registration errors on twice-sampled (TS) data (layout of the paper's Table 2)",
         "table3": "Ablation studies on TS data (layout of the paper's Table 3)",
     }
-    caption = titles[layout] + ". Best of ours per column in bold, second underlined."
+    caption = (f"{caption.rstrip('.')}. " if caption else "") + titles[layout] + ". Best of ours per column in bold, second underlined."
     return Table(layout, list(metrics), samplings, blocks, caption, f"tab:{layout}", notes)
 
 
@@ -428,7 +430,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--experiments", default=None, help="comma-separated experiments to keep (default: all)")
     parser.add_argument("--paper", action="store_true", help="add the paper's published values and ours/paper ratios")
     parser.add_argument("--paper-dir", type=Path, default=None, help=f"paper CSV folder (default: $OMNET_PAPER_TABLES or {default_paper_dir()})")
-    parser.add_argument("--paper-any-dataset", action="store_true", help="compare with the paper even for non-ModelNet40 rows")
+    parser.add_argument("--paper-any-dataset", action="store_true",
+                        help="compare with the paper even for non-ModelNet40 rows (a real-data experiment with its counterpart)")
+    parser.add_argument("--caption", default=None, help="the table's own words (data, budget), put before the layout's caption")
     parser.add_argument("--standalone", action="store_true", help="also write <name>_standalone.tex (a full document)")
     parser.add_argument("--compile", action="store_true", help="compile the standalone document with pdflatex (if installed)")
     args = parser.parse_args(argv)
@@ -437,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
         paper = load_paper_tables(args.paper_dir) if args.paper else None
         table = build_table(frame, args.layout, [m.strip() for m in args.metrics.split(",") if m.strip()], paper,
                             any_dataset=args.paper_any_dataset,
-                            experiments=args.experiments.split(",") if args.experiments else None)
+                            experiments=args.experiments.split(",") if args.experiments else None, caption=args.caption)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

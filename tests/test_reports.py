@@ -79,6 +79,11 @@ def test_paper_values_only_for_the_papers_protocol(paper_dir):
     assert protocol_mismatch({"experiment": "unseen_shapes", "dataset": "synthetic"}, any_dataset=True) is None
     synthetic = attach_paper(ours.assign(dataset="synthetic"), paper)
     assert synthetic["paper_value"].isna().all() and synthetic["paper_note"].str.startswith("dataset").all()
+    real = ours.assign(dataset="modelnet40_resampled", experiment="real_airplane_noisy")
+    assert attach_paper(real, paper)["paper_value"].isna().all()  # other data: no paper value unless asked
+    beside = attach_paper(real, paper, any_dataset=True)  # asked: the counterpart's (Table 1(c)'s) values
+    assert beside["paper_value"].tolist() == merged["paper_value"].tolist()
+    assert protocol_mismatch({"experiment": "real_airplane_noisy", "noise_sigma": 0.0}, any_dataset=True).startswith("noise sigma 0")
 
 
 def test_table1_layout_ranks_and_paper_rows(paper_dir):
@@ -215,3 +220,17 @@ def test_scan_pairs_table_and_plot_bin_a_grid_by_overlap(tmp_path, capsys):
     other = [*data[:2], "data.pair.min_overlap=0.5", data[3]]
     assert plots_main(["scan-pairs", str(tmp_path / "grid"), *other]) == 2
     assert "ran on other pairs than scan_pairs/ts/prnet" in capsys.readouterr().err
+
+
+def test_real_data_table_in_the_papers_order_with_its_caption(paper_dir):
+    frame = _frame(["OMNet"], experiments=("real_unseen_category", "real_airplane_noisy", "real_airplane"),
+                   dataset="modelnet40_resampled", noise_sigma=0.0)
+    frame.loc[frame["experiment"] == "real_airplane_noisy", "noise_sigma"] = 0.01
+    table = build_table(frame, "table1", paper=load_paper_tables(paper_dir), any_dataset=True,
+                        caption="Real airplanes, 1 CPU hour each.")
+    assert [b.label for b in table.blocks] == ["(a) Real airplanes (the paper: unseen shapes)",
+                                               "(b) Real airplanes to real bathtubs (the paper: unseen categories)",
+                                               "(c) Real airplanes with Gaussian noise (the paper: Gaussian noise)"]
+    paper_rows = [r for b in table.blocks for r in b.rows if r.label == "paper"]
+    assert len(paper_rows) == 2  # the fixture's paper tables hold unseen shapes and its noisy counterpart only
+    assert table.caption.startswith("Real airplanes, 1 CPU hour each. Registration errors")
