@@ -40,6 +40,22 @@ def test_export_writes_weights_only_checkpoint_and_card(run_dir, tmp_path):
     assert card["parameters"] == sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters())
 
 
+def test_half_export_stores_float16_and_registers_as_the_float32_weights(run_dir, tmp_path):
+    full, half = export(run_dir, "full", tmp_path), export(run_dir, "half", tmp_path, half=True)
+    card = json.loads((tmp_path / "half.json").read_text())
+    assert card["weights_dtype"] == "float16" and json.loads((tmp_path / "full.json").read_text())["weights_dtype"] == "float32"
+    stored = torch.load(half, weights_only=False)["state_dict"]
+    assert {v.dtype for v in stored.values() if v.is_floating_point()} == {torch.float16}
+    assert half.stat().st_size < 0.6 * full.stat().st_size
+    nets = [RegistrationModule.load_from_checkpoint(p).eval() for p in (full, half)]
+    assert all(p.dtype == torch.float32 for p in nets[1].parameters())  # loaded back as float32
+    torch.manual_seed(0)
+    src, ref = torch.rand(2, 64, 3) - 0.5, torch.rand(2, 64, 3) - 0.5
+    with torch.no_grad():
+        poses = [net.network(src, ref)["transforms"][-1] for net in nets]
+    assert torch.allclose(poses[0], poses[1], atol=2e-2) and not torch.equal(poses[0], poses[1])
+
+
 def test_the_card_names_no_path_of_this_machine(run_dir, tmp_path):
     copy = tmp_path / "resumed_run"
     shutil.copytree(run_dir, copy)

@@ -80,9 +80,16 @@ def run_experiment(run_dir: Path, results: dict[str, Any]) -> str:
     return results["task"]
 
 
+def _stored(state_dict: dict[str, Any], half: bool) -> dict[str, Any]:
+    """The weights as written: floating-point tensors in float16 when ``half`` (loading casts them back to the
+    module's float32), the others as they are."""
+    return {k: v.half() if half and v.is_floating_point() else v for k, v in state_dict.items()}
+
+
 def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: dict[str, Path] | None = None,
-           note: str = "") -> Path:
-    """Write ``<out_dir>/<name>.ckpt`` and ``.json`` from a finished ``src.train`` run directory."""
+           note: str = "", half: bool = False) -> Path:
+    """Write ``<out_dir>/<name>.ckpt`` and ``.json`` from a finished ``src.train`` run directory (``half``: the
+    weights in float16, half the file; the card's ``weights_dtype`` says which)."""
     results = json.loads((run_dir / "metrics.json").read_text())
     config = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
     source = Path(results["checkpoint"])
@@ -91,7 +98,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
     full = torch.load(source, map_location="cpu", weights_only=False)
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.ckpt"
-    torch.save({"state_dict": full["state_dict"], "hyper_parameters": full["hyper_parameters"],
+    torch.save({"state_dict": _stored(full["state_dict"], half), "hyper_parameters": full["hyper_parameters"],
                 "pytorch-lightning_version": full["pytorch-lightning_version"]}, target)
     network = full["hyper_parameters"]["network"]
     card: dict[str, Any] = {
@@ -99,6 +106,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
         "file": target.name,
         "sha256": _sha256(target),
         "size_mb": round(target.stat().st_size / 2**20, 2),
+        "weights_dtype": "float16" if half else "float32",
         "note": note,
         "experiment": {k: results[k] for k in IDENTITY_KEYS} | {
             "task": run_experiment(run_dir, results), "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
@@ -142,9 +150,11 @@ def main(argv: list[str] | None = None) -> None:
     exp.add_argument("--evaluation", action="append", default=[], metavar="KEY=METRICS_JSON",
                      help="metrics.json of a src.eval run of this checkpoint, stored under KEY")
     exp.add_argument("--note", default="")
+    exp.add_argument("--half", action="store_true", help="store the weights in float16 (loaded as float32)")
     args = parser.parse_args(argv)
     evaluations = dict(item.split("=", 1) for item in args.evaluation)
-    target = export(args.run_dir, args.name, args.out_dir, {k: Path(v) for k, v in evaluations.items()}, args.note)
+    target = export(args.run_dir, args.name, args.out_dir, {k: Path(v) for k, v in evaluations.items()}, args.note,
+                    args.half)
     print(f"wrote {target} and {target.with_suffix('.json').name}")
 
 
