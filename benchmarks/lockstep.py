@@ -174,7 +174,10 @@ def train(pair: Pair, datamodule, args: argparse.Namespace, check_same_start) ->
         if "np_rng" in state:  # (state files of the OMNet harness before the split have none)
             np.random.set_state(state["np_rng"])
     else:
-        check_same_start(pair, next(_batches(datamodule, 0, 0)), args.out)
+        numpy_state = np.random.get_state()
+        with torch.random.fork_rng():  # the check's draws leave the training's random streams as they were
+            check_same_start(pair, next(_batches(datamodule, 0, 0)), args.out)
+        np.random.set_state(numpy_state)
         curves.write_text("step,net,cpu_s,train_loss,val_rot_deg,val_trans\n")
     batches_per_epoch = len(datamodule.train_dataloader())
     batches = _batches(datamodule, step_count // batches_per_epoch, step_count % batches_per_epoch)
