@@ -4,7 +4,7 @@ Their ``model.py``/``util.py`` are loaded from a checkout outside the repository
 only, ``Tensor.cuda`` returns the tensor itself and, where ``open3d.open3d.geometry`` (model.py:14, used by the FPFH
 embedding only) does not import, a stub stands for it. Recipe for both nets (main.py): Adam lr 1e-4, weight decay 1e-3
 (main.py:105), ×0.1 at epoch 30 of 40 (MultiStepLR([30]), main.py:106, --epochs 40 main.py:138: 75 %), batch 16
-(main.py:134); IDAM(GNN(64), emb_dims=64, num_iter=3) (main.py:124-129, model.py:123/:175). Width 1.0 only.
+(main.py:134); IDAM(GNN(64), emb_dims=64, num_iter=3) (main.py:128, :132, :175). Width 1.0 only.
 
     OMP_NUM_THREADS=1 python -m benchmarks.lockstep --method idam --authors <checkout of jiahaowork/idam> --out RUN \\
         [--steps 1410] [--schedule-steps 1410] [--val-every 141] [--val-pairs 200]
@@ -36,7 +36,7 @@ DEFAULTS = {"steps": 1410, "width": 1.0, "batch": 16, "lr": 1e-4, "weight_decay"
             "val_every": 141}
 LABELS = {"ours": "ours (baselines.learned.idam)", "authors": "authors' code (jiahaowork/idam)"}
 TITLE = "IDAM, ours and the authors' code in lockstep (real airplanes, TS, PRNet manner, clean)"
-#: Their hard-coded constants (model.py:114 knn k=12, :198 N // 6, :183 0.05) and ours that must match them.
+#: Their hard-coded constants (model.py:120 knn k=12, :214 N // 6, :198 0.05) and ours that must match them.
 FIXED = {"k": 12, "keep_divisor": 6, "match_dist": 0.05}
 TOLERANCE = 1e-8  # float64
 
@@ -79,7 +79,7 @@ def load_authors(checkout: Path) -> types.ModuleType:
     torch.Tensor.cuda = lambda self, *args, **kwargs: self  # their .cuda() calls, on the CPU
     util = _load("idam_authors_util", checkout / "util.py")
     saved = sys.modules.get("util")
-    sys.modules["util"] = util  # model.py: from util import knn, batch_choice
+    sys.modules["util"] = util  # model.py:12: from util import knn, batch_choice
     try:
         with _open3d_stub():
             return _load("idam_authors_model", checkout / "model.py")
@@ -101,7 +101,7 @@ def _block(ours: str, theirs: str, layers: int) -> list[tuple[str, str]]:
 
 
 def layer_names(num_iters: int) -> list[tuple[str, str]]:
-    """(ours, theirs) module names, layer by layer (model.py:92-123, :168-172)."""
+    """(ours, theirs) module names, layer by layer (model.py:52-128, :177-180)."""
     pairs = []
     for j in range(5):  # GNN: propogate1..5, each Conv2DBlock((c, 64, 64)) then Conv1DBlock((64, 64))
         pairs += _block(f"embedding.edges.{j}.mlp", f"emb_nn.propogate{j + 1}.conv2d", 2)
@@ -136,7 +136,7 @@ class IDAMPair(Pair):
             return net.loss(out, gt)["loss"], out["transforms"][-1]
         if net.training:
             rot, trans, loss = net(src.transpose(1, 2), ref.transpose(1, 2), gt[:, :3, :3], gt[:, :3, 3])
-        else:  # model.py:148: ground truth refused outside training; their loss is 0 then
+        else:  # model.py:188: ground truth refused outside training; their loss is 0 then
             rot, trans, loss = net(src.transpose(1, 2), ref.transpose(1, 2))
         return torch.as_tensor(loss, dtype=src.dtype), _se3(rot, trans)
 
@@ -217,7 +217,7 @@ def _eval_pass(pair: IDAMPair, batch: dict[str, Tensor], our_head: bool) -> dict
     with torch.no_grad():
         out = ours(batch["points_src"], batch["points_ref"])
         _, transform_theirs = IDAMPair(ours, theirs).outputs("authors", batch)
-    emb_t = [seen["emb_t"][1], seen["emb_t"][0]]  # theirs embeds tgt first (model.py:189-190)
+    emb_t = [seen["emb_t"][1], seen["emb_t"][0]]  # theirs embeds tgt first (model.py:207-208)
     result = {
         "embedding": max(_max_diff(o, t.transpose(1, 2)) for o, t in zip(seen["emb_o"][:2], emb_t)),
         "significance": max(_max_diff(o.squeeze(-1), t.squeeze(1)) for o, t in zip(seen["sig_o"][:2], seen["sig_t"])),
@@ -315,7 +315,7 @@ def check_same_start(pair: IDAMPair, batch: dict[str, Tensor], out: Path) -> Non
 
     ``eval``: top-k selection; embeddings, significance scores, per-iteration similarity matrices and
     weight logits, the final pose. From the first Procrustes on the two differ by the documented
-    deviation (ours centres on the weighted centroids, theirs on the uniform means, model.py:136-139);
+    deviation (ours centres on the weighted centroids, theirs on the uniform means, model.py:139-140);
     ``eval_our_procrustes`` repeats it with their SVDHead replaced by ours. ``train``: their random
     selection (util.py:43 batch_choice) forced to our draw, their head ours: loss and every gradient
     (the same training step); ``train_iteration1_only``: the same with one iteration;

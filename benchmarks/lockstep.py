@@ -9,8 +9,7 @@ calls, the start check) is an adapter module: ``benchmarks.omnet_lockstep``, ``b
 
     OMP_NUM_THREADS=1 python -m benchmarks.lockstep --method omnet|idam --authors CHECKOUT --out RUN [--steps N]
 
-Resumable: ``state.pt`` in ``--out`` every ``--val-every`` steps; ``curves.csv`` (step, net, CPU s,
-training loss, validation Error(R)/Error(t)); ``start_check.json``; ``--plot PNG`` draws the curves.
+Resumable (``state.pt`` every ``--val-every`` steps); ``curves.csv``, ``start_check.json``; ``--plot PNG``.
 """
 
 from __future__ import annotations
