@@ -126,23 +126,63 @@ def _se3(rot: Tensor, trans: Tensor) -> Tensor:
 
 
 class IDAMPair(Pair):
-    """Ours ((B,N,3), 4×4 ground truth) and theirs ((B,3,N), R (B,3,3), t (B,3); no ground truth in eval)."""
+    """Ours ((B,N,3), 4×4 ground truth) and theirs ((B,3,N), R (B,3,3), t (B,3); no ground truth in eval).
+
+    ``authors``: their ``model`` module; ``shared_selection``: in training, their random point
+    selection (util.py:43 ``batch_choice``) replaced by our draw on the same batch (ours runs first)."""
+
+    def __init__(self, ours: nn.Module, theirs: nn.Module, authors: types.ModuleType | None = None,
+                 shared_selection: bool = False) -> None:
+        super().__init__(ours, theirs)
+        self.authors, self.shared_selection, self._chosen = authors, shared_selection, None
 
     def outputs(self, name: str, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         src, ref, gt = batch["points_src"], batch["points_ref"], batch["transform_gt"]
         net = self.nets[name]
         if name == "ours":
-            out = net(src, ref, gt)
+            with self._recording(net):
+                out = net(src, ref, gt)
             return net.loss(out, gt)["loss"], out["transforms"][-1]
         if net.training:
-            rot, trans, loss = net(src.transpose(1, 2), ref.transpose(1, 2), gt[:, :3, :3], gt[:, :3, 3])
+            with self._forcing():
+                rot, trans, loss = net(src.transpose(1, 2), ref.transpose(1, 2), gt[:, :3, :3], gt[:, :3, 3])
         else:  # model.py:188: ground truth refused outside training; their loss is 0 then
             rot, trans, loss = net(src.transpose(1, 2), ref.transpose(1, 2))
         return torch.as_tensor(loss, dtype=src.dtype), _se3(rot, trans)
 
+    @contextlib.contextmanager
+    def _recording(self, net: nn.Module) -> Iterator[None]:
+        """Our training selection's source indices kept in ``_chosen`` (when shared)."""
+        if not (self.shared_selection and net.training):
+            yield
+            return
+        select = net._training_selection
+        net._training_selection = lambda *a: (lambda r: setattr(self, "_chosen", r[0]) or r)(select(*a))
+        try:
+            yield
+        finally:
+            del net._training_selection
+
+    @contextlib.contextmanager
+    def _forcing(self) -> Iterator[None]:
+        """Their ``batch_choice`` returning our positives, then our negatives (when shared)."""
+        if not self.shared_selection:
+            yield
+            return
+        if self._chosen is None:
+            raise RuntimeError("shared selection: ours must run first on the batch")
+        idx, choice = self._chosen.numpy(), self.authors.batch_choice
+        picks = iter((idx[:, :idx.shape[1] // 2], idx[:, idx.shape[1] // 2:]))
+        self.authors.batch_choice = lambda data, k, p=None, replace=False: next(picks)
+        try:
+            yield
+        finally:
+            self.authors.batch_choice, self._chosen = choice, None
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No options beyond the shared ones."""
+    parser.add_argument("--shared-selection", action="store_true",
+                        help="their training-time point selection replaced by ours (default: each its own draw)")
 
 
 def overrides(args: argparse.Namespace) -> list[str]:
@@ -163,8 +203,7 @@ def build(args: argparse.Namespace, cfg) -> IDAMPair:
     ours = hydra.utils.instantiate(net_cfg)
     theirs = authors.IDAM(authors.GNN(net_cfg.emb_dims), types.SimpleNamespace(emb_dims=net_cfg.emb_dims, num_iter=ours.num_iters))
     copy_weights(ours, theirs)
-    pair = IDAMPair(ours.train(), theirs.train())
-    pair.authors = authors
+    pair = IDAMPair(ours.train(), theirs.train(), authors, getattr(args, "shared_selection", False))
     return pair
 
 
@@ -241,23 +280,9 @@ def _train_pass(pair: IDAMPair, batch: dict[str, Tensor], our_head: bool, iterat
         ours.num_iters = theirs.num_iter = iterations
     if our_head:
         theirs.head.forward = _procrustes_head
-    module, chosen = pair.authors, []
-    select = ours._training_selection
-    ours._training_selection = lambda *a: (lambda r: chosen.append(r[0]) or r)(select(*a))
-    choice, picks = module.batch_choice, iter(())
-
-    def forced(data, k, p=None, replace=False):  # util.py:43: first the positives, then the negatives
-        return next(picks)
-
-    module.batch_choice = forced
-    try:
-        twins = IDAMPair(ours, theirs)
-        loss_ours, transform_ours = twins.outputs("ours", batch)
-        idx = chosen[0].numpy()
-        picks = iter((idx[:, :idx.shape[1] // 2], idx[:, idx.shape[1] // 2:]))
-        loss_theirs, transform_theirs = twins.outputs("authors", batch)
-    finally:
-        module.batch_choice = choice
+    twins = IDAMPair(ours, theirs, pair.authors, shared_selection=True)
+    loss_ours, transform_ours = twins.outputs("ours", batch)
+    loss_theirs, transform_theirs = twins.outputs("authors", batch)
     loss_ours.backward()
     loss_theirs.backward()
     params_ours, params_theirs = dict(ours.named_parameters()), dict(theirs.named_parameters())

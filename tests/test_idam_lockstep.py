@@ -104,6 +104,7 @@ def test_the_defaults_are_the_authors_recipe_and_the_budget_run():
         ["--method", "idam", "--authors", "a", "--out", "o"])
     assert (args.steps, args.val_every, args.batch, args.width) == (1410, 141, 16, 1.0)
     assert (args.lr, args.weight_decay, args.milestones, args.val_pairs) == (1e-4, 1e-3, [0.75], None)
+    assert not args.shared_selection  # each its own random point selection unless asked
 
 
 @pytest.mark.skipif(not os.environ.get("IDAM_AUTHORS_DIR"),
