@@ -1,14 +1,15 @@
 """Compute tests/fixtures/published_*.npz with the authors' own code and the published weights.
 
-Run once (CPU); tests/test_published_weights.py compares our networks against the arrays. The
-authors' code is read from checkouts outside the repository (never copied into it), e.g.
+Run once (CPU), from the repository root; tests/unit/baselines/test_published_weights.py compares our
+networks against the arrays. The authors' code is read from checkouts outside the repository (never
+copied into it), e.g. with ``AUTHORS`` a folder of your choice:
 
-    for r in WangYueFt+dcp vinits5+learning3d Lilac-Lee+PointNetLK_Revisited; do mkdir -p /tmp/authors/$r; done
-    git -C <a clone of WangYueFt/dcp> show HEAD:model.py > /tmp/authors/WangYueFt+dcp/model.py   # + util.py
+    for r in WangYueFt+dcp vinits5+learning3d Lilac-Lee+PointNetLK_Revisited; do mkdir -p $AUTHORS/$r; done
+    git -C <a clone of WangYueFt/dcp> show HEAD:model.py > $AUTHORS/WangYueFt+dcp/model.py   # + util.py
     # learning3d: models/{pointnet,pointnetlk,pooling}.py, ops/{data_utils,se3,so3,sinc,invmat}.py
     # PointNetLK_Revisited: model.py, utils.py
-    python tests/make_published_fixtures.py --dcp /tmp/authors/WangYueFt+dcp \\
-        --learning3d /tmp/authors/vinits5+learning3d --revisited /tmp/authors/Lilac-Lee+PointNetLK_Revisited
+    python -m tests.helpers.make_published_fixtures --dcp $AUTHORS/WangYueFt+dcp \\
+        --learning3d $AUTHORS/vinits5+learning3d --revisited $AUTHORS/Lilac-Lee+PointNetLK_Revisited
 
 Two CPU-only edits are made in memory, never in the files: DCP's ``get_graph_feature`` puts its index
 on ``torch.device('cuda')`` (→ the points' device); PointNetLK-Revisited's ``do_forward`` writes into
@@ -31,12 +32,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from src.paths import shared_path  # noqa: E402
-
-FIXTURES = ROOT / "tests" / "fixtures"
+from src.paths import shared_path
+from tests.helpers.paths import FIXTURES
 SHAPES = (3, 7)  # train ids airplane_0004 and airplane_0008 of the cache
 
 

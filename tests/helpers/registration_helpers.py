@@ -11,8 +11,8 @@ from hydra import compose, initialize_config_dir
 
 from src.config import register_resolvers
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
+from tests.helpers.paths import CONF
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
 #: Overrides of a run on tiny synthetic data (14 train shapes at batch 2), a tiny network, on the CPU.
 TINY = [
     "data=synthetic",

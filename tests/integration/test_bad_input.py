@@ -14,7 +14,7 @@ from pathlib import Path
 import hydra
 import pytest
 import torch
-from registration_helpers import CONF, TINY, compose_config
+from tests.helpers.registration_helpers import CONF, TINY, compose_config
 
 import src.eval
 import src.train

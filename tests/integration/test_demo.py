@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 import pytest
-from registration_helpers import TINY, compose_config, tiny_config
+from tests.helpers.registration_helpers import TINY, compose_config, tiny_config
 
 from benchmarks.demo import (
     IDENTITY_LABEL,

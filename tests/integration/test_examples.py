@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from baselines.testing import euler_transform, make_pair
+from tests.helpers.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 NUMBER = r"(-?\d+\.\d+)"
 

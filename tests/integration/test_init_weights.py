@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from registration_helpers import RESUME_RUN, last_weights, tiny_config
+from tests.helpers.registration_helpers import RESUME_RUN, last_weights, tiny_config
 
 from src.errors import CheckpointError, ConfigError
 from src.train import train

@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from registration_helpers import CONF
+from tests.helpers.registration_helpers import CONF
 
 ROOT = CONF.parent
 MACHINE_ROOTS = ("/work/", "/root/", "/home/", "/Users/", "/mnt/", "/scratch/", "/data/", "/opt/", "/media/", "/nfs/")

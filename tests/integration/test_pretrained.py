@@ -7,7 +7,7 @@ import shutil
 
 import pytest
 import torch
-from registration_helpers import tiny_config
+from tests.helpers.registration_helpers import tiny_config
 
 from src.errors import CheckpointError
 from src.eval import evaluate

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from registration_helpers import (
+from tests.helpers.registration_helpers import (
     CONF,
     RESUME_RUN,
     RESUME_STEPS,
@@ -86,7 +86,7 @@ def _signalled_cli_run(tmp, run, signum: int) -> subprocess.CompletedProcess:
     """``python -m src.train`` (the real command, one loader worker) paused at the start of step 3, sent
     ``signum`` from here to its whole process group, as ``timeout`` and a terminal's Ctrl+C do."""
     ready = tmp / f"ready{signum}"
-    pause = ["+callbacks.pause._target_=registration_helpers.PauseAt", "+callbacks.pause.step=3",
+    pause = ["+callbacks.pause._target_=tests.helpers.registration_helpers.PauseAt", "+callbacks.pause.step=3",
              f"+callbacks.pause.ready={ready}"]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(CONF.parent / "tests"), os.environ.get("PYTHONPATH", "")]),
            "OMP_NUM_THREADS": "1"}

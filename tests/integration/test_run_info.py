@@ -8,8 +8,7 @@ import sys
 from types import SimpleNamespace
 
 import pytest
-from registration_helpers import TINY, compose_config
-from test_real_categories import merged_root, zips  # noqa: F401 - fixtures: airplane + bathtub cache
+from tests.helpers.registration_helpers import TINY, compose_config
 
 import hydra
 from src.config import loader_workers
@@ -64,7 +63,7 @@ def test_a_first_run_prints_what_it_does_its_estimate_and_its_results_once(tmp_p
     assert record["test_categories"] and set(record["test_categories"]) <= set(half1)
 
 
-def test_a_record_labels_what_was_evaluated_not_the_experiment(merged_root):  # noqa: F811
+def test_a_record_labels_what_was_evaluated_not_the_experiment(merged_root):
     """Bathtubs evaluated through +exp=real_airplane are bathtubs, all of them (not the carve-out's size)."""
     cfg = compose_config(f"data.cache_root={merged_root}", "data.num_workers=0", "output_dir=unused", "+exp=real_airplane",
                          "test_size=1", "val_size=1", "~data.splits.test", "+data.splits.test={split: train, categories: [bathtub]}")

@@ -20,7 +20,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
-from registration_helpers import TINY
+from tests.helpers.registration_helpers import TINY
 
 from benchmarks.collect import collect, main as collect_main
 from benchmarks.latex_check import check_latex, compile_latex, tabular_rows, tabulars
@@ -29,8 +29,8 @@ from src.config import register_resolvers
 from src.eval import evaluate
 from src.reporting import read_csv_logs
 from src.train import train
+from tests.helpers.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 CONF = str(ROOT / "conf")
 STEP = ["trainer.max_steps=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1"]
 register_resolvers()

@@ -15,8 +15,8 @@ from baselines.learned.adapter import LearnedRegistrator, run_batches
 from baselines.testing import euler_transform, l_shape_surface
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
+from tests.helpers.paths import CONF
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
 TINY_OMNET = {"_target_": "src.models.omnet.OMNet", "width": 0.0625, "num_iters": 2}
 
 

@@ -5,9 +5,9 @@ import torch
 
 from baselines.learned.deepgmr import DeepGMR
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
-from registration_helpers import assert_rigid as _assert_rigid
-from registration_helpers import partial_pair_batch as _batch
-from registration_helpers import train_losses
+from tests.helpers.registration_helpers import assert_rigid as _assert_rigid
+from tests.helpers.registration_helpers import partial_pair_batch as _batch
+from tests.helpers.registration_helpers import train_losses
 
 
 @pytest.mark.parametrize("kwargs", [dict(), dict(use_rri=False), dict(exact_procrustes=True)])

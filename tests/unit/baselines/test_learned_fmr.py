@@ -6,9 +6,9 @@ import torch
 from baselines.learned.common.global_feature import chamfer_loss
 from baselines.learned.fmr import FMR
 from src.geometry import se3_inverse
-from registration_helpers import eval_losses_before_after
-from registration_helpers import assert_rigid as _assert_rigid
-from registration_helpers import partial_pair_batch as _batch
+from tests.helpers.registration_helpers import eval_losses_before_after
+from tests.helpers.registration_helpers import assert_rigid as _assert_rigid
+from tests.helpers.registration_helpers import partial_pair_batch as _batch
 
 
 def test_forward_returns_rigid_transforms_and_reconstructions():

@@ -27,7 +27,7 @@ from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt, se3_inverse
 from src.models.module import RegistrationModule
-from registration_helpers import assert_reloads_the_same
+from tests.helpers.registration_helpers import assert_reloads_the_same
 
 register_resolvers()
 

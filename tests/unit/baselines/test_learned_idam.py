@@ -9,10 +9,10 @@ from baselines.learned.idam import IDAM
 from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
-from registration_helpers import seeded_losses_before_after
-from registration_helpers import assert_reloads_the_same
-from registration_helpers import assert_rigid as _assert_rigid
-from registration_helpers import exact_pair_batch as _batch
+from tests.helpers.registration_helpers import seeded_losses_before_after
+from tests.helpers.registration_helpers import assert_reloads_the_same
+from tests.helpers.registration_helpers import assert_rigid as _assert_rigid
+from tests.helpers.registration_helpers import exact_pair_batch as _batch
 
 register_resolvers()
 

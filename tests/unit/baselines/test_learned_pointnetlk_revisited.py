@@ -11,9 +11,9 @@ from baselines.learned.pointnetlk_revisited import PointNetLKRevisited
 from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.geometry import se3_inverse
-from registration_helpers import assert_reloads_the_same, assert_rigid, eval_losses_before_after
-from registration_helpers import exact_pair_batch as _batch
-from registration_helpers import partial_pair_batch
+from tests.helpers.registration_helpers import assert_reloads_the_same, assert_rigid, eval_losses_before_after
+from tests.helpers.registration_helpers import exact_pair_batch as _batch
+from tests.helpers.registration_helpers import partial_pair_batch
 
 register_resolvers()
 

@@ -13,10 +13,10 @@ from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.errors import ConfigError, PointCloudError
 from src.models.module import RegistrationModule
-from registration_helpers import assert_reloads_the_same
-from registration_helpers import assert_rigid as _assert_rigid
-from registration_helpers import train_losses
-from registration_helpers import exact_pair_batch as _batch
+from tests.helpers.registration_helpers import assert_reloads_the_same
+from tests.helpers.registration_helpers import assert_rigid as _assert_rigid
+from tests.helpers.registration_helpers import train_losses
+from tests.helpers.registration_helpers import exact_pair_batch as _batch
 
 register_resolvers()
 

@@ -24,8 +24,9 @@ from benchmarks.tables import build_table
 from src.compose import compose_model_config
 from src.errors import ConfigError
 from src.paths import shared_path
+from tests.helpers.paths import CONF as CONF_DIR
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+CONF = str(CONF_DIR)
 PAPER_DIR = shared_path("reference", "paper_tables")
 TRUTH = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))
 LEARNED = [m for m in METHODS if m.kind == "learned"]

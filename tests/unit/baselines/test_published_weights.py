@@ -23,9 +23,9 @@ from src.config import register_resolvers
 from src.data.perturbations import TwistPerturbation, UnitCube, build_twist_transforms, twist_matrix
 from src.errors import CheckpointError, ConfigError
 from src.paths import shared_path
+from tests.helpers.paths import CONF as CONF_DIR, FIXTURES
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+CONF = str(CONF_DIR)
 register_resolvers()
 
 

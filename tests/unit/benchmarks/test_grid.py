@@ -17,8 +17,9 @@ from baselines.testing import ToyRegistrator
 from src.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
 from src.metrics import METRIC_NAMES, RegistrationMetrics
 from src.pair_sets import TestSet
+from tests.helpers.paths import CONF as CONF_DIR
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+CONF = str(CONF_DIR)
 TINY_DATA = [
     "data.build.num_train_per_category=2",
     "data.build.num_test_per_category=1",

@@ -7,7 +7,7 @@ import inspect
 
 import pytest
 from omegaconf import OmegaConf
-from registration_helpers import CONF, compose_config
+from tests.helpers.registration_helpers import CONF, compose_config
 
 from src.data import prepare, readers
 from src.data.datasets import DATASET_NAMES, DATASETS, SOURCE_LAYOUTS, get_dataset, read_sources, source_of

@@ -8,7 +8,7 @@ import sys
 import pytest
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from registration_helpers import compose_config
+from tests.helpers.registration_helpers import compose_config
 
 from src import lightning_compat
 from src.distributed import ddp_job_command, distributed_job_scope

@@ -5,7 +5,7 @@ import torch
 
 from src.geometry import euler_to_matrix, se3_apply, se3_from_rt
 from src.models.omnet import OMNet
-from registration_helpers import train_losses
+from tests.helpers.registration_helpers import train_losses
 
 torch.manual_seed(0)
 

@@ -174,7 +174,7 @@ def test_damaged_zip_is_named_as_such(resampled_dir, make_zip, tmp_path, damage,
 def test_scan_meshes_from_a_single_file_and_a_folder(tmp_path, meshes):
     import open3d as o3d
 
-    from conftest import off_text
+    from tests.helpers.meshes import off_text
 
     vertices, faces = meshes["cube"]
     scans = tmp_path / "scans"

@@ -17,39 +17,10 @@ from src.data.categories import MODELNET40_CATEGORIES
 from src.data.prepare import main, prepare
 from src.data.readers import MergedReader, open_reader
 from src.errors import ConfigError, DatasetError
-from src.paths import REPO_ROOT
+from tests.helpers.modelnet import TRAIN
+from tests.helpers.paths import CONF
 
 register_resolvers()
-TRAIN = {"airplane": 6, "bathtub": 4}
-"""Train shapes per category; each also lists 2 test ids whose files are withheld."""
-
-
-def write_category(root: Path, category: str, num_train: int, num_test: int = 2, num_points: int = 16) -> Path:
-    """``<root>/<category>/modelnet40_normal_resampled/`` holding one category: its train files, split
-    lists restricted to it whose test ids have no file, and all 40 shape names (as the shared zips)."""
-    folder = root / category / "modelnet40_normal_resampled"
-    ids = [f"{category}_{i:04d}" for i in range(1, num_train + num_test + 1)]
-    (folder / category).mkdir(parents=True)
-    for i, shape_id in enumerate(ids[:num_train]):
-        values = np.random.default_rng([MODELNET40_CATEGORIES.index(category), i]).uniform(-0.5, 0.5, (num_points, 6))
-        lines = "".join(",".join(f"{v:.6f}" for v in row) + "\n" for row in values)
-        (folder / category / f"{shape_id}.txt").write_text(lines)
-    (folder / "modelnet40_shape_names.txt").write_text("\n".join(MODELNET40_CATEGORIES) + "\n")
-    (folder / "modelnet40_train.txt").write_text("\n".join(ids[:num_train]) + "\n")
-    (folder / "modelnet40_test.txt").write_text("\n".join(ids[num_train:]) + "\n")
-    return folder
-
-
-@pytest.fixture
-def zips(tmp_path) -> dict[str, Path]:
-    """``{category: zip}`` for airplane (6 train) and bathtub (4 train)."""
-    archives = {}
-    for category, num_train in TRAIN.items():
-        folder = write_category(tmp_path / "src", category, num_train)
-        archives[category] = Path(shutil.make_archive(str(tmp_path / category), "zip", folder.parent, folder.name))
-    return archives
-
-
 @pytest.fixture
 def info_logs(caplog):
     caplog.set_level(logging.INFO, logger="src.data.prepare")
@@ -130,7 +101,7 @@ def test_merged_reader_loads_each_shape_from_its_archive(zips):
 
 
 def _datamodule(cache_root: Path, *overrides: str):
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=[f"data.cache_root={cache_root}", "data.num_workers=0",
                                            "output_dir=/tmp/unused", *overrides])
     datamodule = hydra.utils.instantiate(cfg.data)
@@ -145,12 +116,6 @@ def _stage_names(datamodule) -> dict[str, list[str]]:
 
 def _ids(category: str, first: int, last: int) -> list[str]:
     return [f"{category}_{i:04d}" for i in range(first, last + 1)]
-
-
-@pytest.fixture
-def merged_root(zips, tmp_path) -> Path:
-    prepare("modelnet40_resampled", source=list(zips.values()), cache_root=tmp_path / "cache")
-    return tmp_path / "cache"
 
 
 @pytest.mark.parametrize(

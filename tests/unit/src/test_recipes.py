@@ -13,7 +13,7 @@ import lightning as L
 import pytest
 import torch
 from omegaconf import OmegaConf
-from registration_helpers import (
+from tests.helpers.registration_helpers import (
     CONF,
     RESUME_RUN,
     RESUME_STEPS,

@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from scan_helpers import COLUMNS, ply_text, surface, write_scan_set
+from tests.helpers.scan_helpers import COLUMNS, ply_text, surface, write_scan_set
 from src.config import register_resolvers
 from src.data.scan_pairs import ScanPairsDataModule
 from src.data.scans import normalise_pair, parse_ply_points, read_scans, scan_pairs
