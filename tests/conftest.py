@@ -21,36 +21,15 @@ import pytest
 import torch
 
 from src.data.categories import MODELNET40_CATEGORIES
-from src.paths import shared_path
+from tests.helpers.markers import skip_reason
 from tests.helpers.meshes import CUBE_QUADS, CUBE_TRIANGLES, CUBE_V, TETRA_F, TETRA_V, off_text
 from tests.helpers.modelnet import TRAIN, write_category
 
 torch.set_num_threads(1)
 
-GOICP_MISSING = "optional Go-ICP extension not installed: run baselines/classical/install_goicp.sh"
-
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--run-slow", action="store_true", default=False, help="also run the tests marked slow")
-
-
-def missing_shared_files(marker: pytest.Mark) -> list[str]:
-    """The files a ``shared_data`` marker names (relative to the shared folder) that are absent."""
-    if not marker.args:
-        raise pytest.UsageError("@pytest.mark.shared_data needs the shared file(s) it reads, e.g. 'data/<file>.zip'")
-    return [name for name in marker.args if not shared_path(*Path(name).parts).exists()]
-
-
-def skip_reason(item: pytest.Item, run_slow: bool, has_goicp: bool) -> str | None:
-    """Why ``item`` is skipped by its markers, or None."""
-    if item.get_closest_marker("slow") is not None and not run_slow:
-        return "slow: run with --run-slow"
-    missing = [name for marker in item.iter_markers("shared_data") for name in missing_shared_files(marker)]
-    if missing:
-        return f"shared data absent: {', '.join(missing)} (in ../shared or $OMNET_SHARED_DIR)"
-    if item.get_closest_marker("goicp") is not None and not has_goicp:
-        return GOICP_MISSING
-    return None
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -1,7 +1,5 @@
 """baselines.classical.sweep: it tunes on the real airplanes' training shapes; its test-set mode draws the grid's pairs."""
 
-from pathlib import Path
-
 import hydra
 import numpy as np
 import pytest
@@ -12,7 +10,7 @@ from src.paths import shared_path
 from tests.helpers.registration_helpers import compose_config
 
 ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
-pytestmark = pytest.mark.skipif(not ZIP.is_file(), reason=f"{ZIP} not available")
+pytestmark = pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
 
 
 @pytest.fixture(scope="module")

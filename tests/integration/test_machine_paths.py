@@ -9,9 +9,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from tests.helpers.registration_helpers import CONF
 
-ROOT = CONF.parent
+from tests.helpers.paths import ROOT
+
 MACHINE_ROOTS = ("/work/", "/root/", "/home/", "/Users/", "/mnt/", "/scratch/", "/data/", "/opt/", "/media/", "/nfs/")
 # an absolute path: a machine root not continuing a word, a relative path or a URL (``../shared/data/`` passes)
 MACHINE_PATH = re.compile(r"(?<![\w.~/-])(?:" + "|".join(map(re.escape, MACHINE_ROOTS)) + ")")

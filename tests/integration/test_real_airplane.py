@@ -17,7 +17,7 @@ from src.paths import REPO_ROOT, shared_path
 ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 BATHTUB_ZIP = shared_path("data", "modelnet40_normal_resampled_bathtub.zip")
 CONF = str(REPO_ROOT / "conf")
-pytestmark = pytest.mark.skipif(not (ZIP.is_file() and BATHTUB_ZIP.is_file()), reason=f"{ZIP.parent} not available")
+ZIPS = pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip", "data/modelnet40_normal_resampled_bathtub.zip")  # the cache_root tests
 register_resolvers()
 
 
@@ -45,6 +45,7 @@ def _ids(category: str, first: int, last: int) -> list[str]:
     return [f"{category}_{i:04d}" for i in range(first, last + 1)]
 
 
+@ZIPS
 def test_validation_carveout_is_the_last_train_ids(cache_root):
     dm = _datamodule(cache_root)
     dm.setup("fit")
@@ -57,6 +58,7 @@ def test_validation_carveout_is_the_last_train_ids(cache_root):
     assert len({tuple(dm.datasets["val"][i]["points_src"][:3].flatten().tolist()) for i in range(8)}) == 8
 
 
+@ZIPS
 @pytest.mark.parametrize("partial", ["prnet", "rpmnet"])
 def test_real_pairs_are_fixed_across_worker_counts(cache_root, partial):
     dm = _datamodule(cache_root, f"partial={partial}", "data.pair.noise_sigma=0.01")
@@ -68,6 +70,7 @@ def test_real_pairs_are_fixed_across_worker_counts(cache_root, partial):
     assert one[0].shape[1] == (768 if partial == "prnet" else 717)
 
 
+@ZIPS
 def test_asking_for_the_withheld_test_split_stops_with_the_prepare_message(cache_root):
     dm = _datamodule(cache_root, "data.splits.test.split=test")
     with pytest.raises(DatasetError, match=(
@@ -77,6 +80,7 @@ def test_asking_for_the_withheld_test_split_stops_with_the_prepare_message(cache
         dm.setup("test")
 
 
+@ZIPS
 def test_training_on_both_categories_keeps_the_airplane_carveout(cache_root):
     dm = _datamodule(cache_root, "real_train_categories=[airplane,bathtub]")
     dm.setup()
@@ -85,6 +89,7 @@ def test_training_on_both_categories_keeps_the_airplane_carveout(cache_root):
     assert dm.datasets["train"][17]["points_src"].shape == (768, 3)  # a bathtub pair
 
 
+@ZIPS
 @pytest.mark.parametrize(("train", "test"), [("airplane", "bathtub"), ("bathtub", "airplane")])
 def test_real_unseen_category_in_both_directions(cache_root, train, test):
     dm = _datamodule(cache_root, f"train_category={train}", f"test_category={test}", exp="real_unseen_category")
@@ -93,6 +98,7 @@ def test_real_unseen_category_in_both_directions(cache_root, train, test):
     assert dm.datasets["test"][0]["points_src"].shape == (768, 3)
 
 
+@pytest.mark.shared_data("data/stanford/bunny_npm_decimated.off")
 def test_stanford_bunny_gives_repeated_fixed_pairs(tmp_path):
     bunny = ZIP.parent / "stanford" / "bunny_npm_decimated.off"
     prepare("stanford", source=bunny, cache_root=tmp_path, num_samplings=4, workers=1)

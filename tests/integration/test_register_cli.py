@@ -17,6 +17,7 @@ from src.paths import shared_path
 
 SCANS = shared_path("data", "stanford", "stanford_bunny_scans.zip")
 MEMBERS = "bunny_scans/data/"
+BUNNY = pytest.mark.shared_data("data/stanford/stanford_bunny_scans.zip")  # the tests of the `bunny` fixture
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +35,7 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(Rotation.from_matrix(a[:3, :3] @ b[:3, :3].T).magnitude()))
 
 
+@BUNNY
 def test_fgr_registers_two_real_scans_and_writes_transform_fit_aligned_cloud_and_picture(bunny, tmp_path, capsys):
     source, reference, truth = bunny
     assert main(["register", str(source), str(reference), "--method", "fgr", "--out", str(tmp_path / "out")]) == 0
@@ -65,6 +67,7 @@ def _write(path: Path, points: np.ndarray) -> Path:
     return path
 
 
+@BUNNY
 def test_a_learned_method_takes_the_shipped_checkpoint_and_one_similarity_whatever_the_units(bunny, tmp_path):
     """The same scans in millimetres (PCD, XYZ) and in decimetres (PLY): one similarity into the unit sphere
     each, so the same rotation and the translation in each pair's units."""

@@ -273,7 +273,7 @@ def test_on_failure_record_and_raise_in_process(tmp_path, monkeypatch):
     assert record_failures(lambda c: 1)(cfg) == 1 and not (tmp_path / "b" / "failure.json").exists()
 
 
-@pytest.mark.skipif(not os.environ.get("OMNET_SLOW_TESTS"), reason="~1 min on 2 cores: set OMNET_SLOW_TESTS=1")
+@pytest.mark.slow  # ~1 min on 2 cores: --run-slow
 def test_joblib_launcher_multirun_with_a_failing_job(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     log = tmp_path / "joblib.log"

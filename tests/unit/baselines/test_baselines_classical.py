@@ -17,7 +17,6 @@ from src.geometry.numpy_rigid import apply_transform
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~10° about a tilted axis
 LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total
 
-HAS_GOICP = goicp_module.goicp_available()
 
 
 def _errors(estimate, truth):
@@ -90,7 +89,7 @@ def test_fgr_is_deterministic_with_a_seed():
     np.testing.assert_array_equal(reg.register(*pair), reg.register(*pair))
 
 
-@pytest.mark.skipif(not HAS_GOICP, reason="optional Go-ICP extension not installed: run baselines/classical/install_goicp.sh")
+@pytest.mark.goicp
 def test_goicp_recovers_a_large_transform():
     # Branch-and-bound time depends on the data (deterministically): these two pairs take
     # ~1-3 s each; run them through the runner so a regression fails instead of hanging.
@@ -102,7 +101,7 @@ def test_goicp_recovers_a_large_transform():
         assert rot < limit and trans < 0.05
 
 
-@pytest.mark.skipif(not HAS_GOICP, reason="optional Go-ICP extension not installed: run baselines/classical/install_goicp.sh")
+@pytest.mark.goicp
 def test_goicp_keeps_stdout_clean(capfd):
     get_registrator("goicp", dt_size=50).register(*make_pair(SMALL, 200, seed=1))
     out, _ = capfd.readouterr()
@@ -144,10 +143,8 @@ def test_methods_work_on_unnormalised_input(method, truth, limit, scale, offset)
     assert np.linalg.norm(in_object_units - truth[:3, 3]) < 0.02
 
 
-@pytest.mark.parametrize("method", ["icp", "fgr", "symmetric_icp", "goicp"])
+@pytest.mark.parametrize("method", ["icp", "fgr", "symmetric_icp", pytest.param("goicp", marks=pytest.mark.goicp)])
 def test_degenerate_clouds_are_refused_by_every_method(method):
-    if method == "goicp" and not HAS_GOICP:
-        pytest.skip("optional Go-ICP extension not installed")
     with pytest.raises(PointCloudError, match="src: degenerate cloud, its 3 points are all the same point"):
         get_registrator(method).register(np.ones((3, 3)), np.ones((3, 3)))  # FGR: Open3D RuntimeError before
 

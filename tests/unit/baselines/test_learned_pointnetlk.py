@@ -10,7 +10,6 @@ from baselines.learned.pointnet_classifier import ClassificationModule
 from baselines.learned.pointnetlk import PointNetLK
 from baselines.learned.published import PUBLISHED
 from src.errors import CheckpointError
-from src.paths import shared_path
 from src.geometry import se3_inverse
 from tests.helpers.registration_helpers import eval_losses_before_after
 from tests.helpers.registration_helpers import assert_rigid as _assert_rigid
@@ -108,8 +107,7 @@ def test_feature_init_from_a_classifier_checkpoint_when_training_starts(tmp_path
         PointNetLK(width=0.125, feature_init=str(tmp_path / "missing.ckpt")).train()
 
 
-@pytest.mark.skipif(not shared_path("weights", PUBLISHED["learning3d_pointnet_classifier_features"].file).is_file(),
-                    reason="published weights absent (../shared/weights)")
+@pytest.mark.shared_data(f"weights/{PUBLISHED['learning3d_pointnet_classifier_features'].file}")
 def test_feature_init_from_the_published_classifier_features():
     model = PointNetLK(feature_init="official:learning3d_pointnet_classifier_features")
     model.train()

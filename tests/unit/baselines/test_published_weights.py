@@ -2,8 +2,8 @@
 the three entries (src.eval, the Python API), their one-line errors, and PointNetLK's pair protocol.
 
 The equivalence fixtures (tests/fixtures/published_*.npz) were computed once with the authors' own
-code and the same weights by tests/make_published_fixtures.py. Tests that need ../shared/weights skip
-(with the reason) only where a file is absent.
+code and the same weights by tests/helpers/make_published_fixtures.py. Tests that need ../shared/weights
+are marked ``shared_data`` and skip (with the reason) only where their file is absent.
 """
 
 from pathlib import Path
@@ -29,9 +29,9 @@ CONF = str(CONF_DIR)
 register_resolvers()
 
 
-def needs(name: str):
-    path = shared_path("weights", PUBLISHED[name].file)
-    return pytest.mark.skipif(not path.is_file(), reason=f"published weights {path} absent (../shared/weights)")
+def needs(name: str) -> pytest.MarkDecorator:
+    """The published weights ``name`` (``../shared/weights/<file>``): skipped where absent."""
+    return pytest.mark.shared_data(f"weights/{PUBLISHED[name].file}")
 
 
 def fixture(name: str) -> dict[str, torch.Tensor]:
@@ -108,10 +108,9 @@ def test_the_shared_file_must_be_the_published_one(tmp_path, monkeypatch):
         resolve(str(tmp_path / "weights" / "dcp_v1.t7"))
 
 
+@needs("dcp_v1")
 def test_a_path_of_another_name_is_loaded_but_marked_unverified(tmp_path):
     published = shared_path("weights", PUBLISHED["dcp_v1"].file)
-    if not published.is_file():
-        pytest.skip("the shared DCP weights are not here")
     copy = tmp_path / "my_dcp.t7"
     copy.write_bytes(published.read_bytes())
     assert resolve(str(published)).verified and not resolve(str(copy)).verified

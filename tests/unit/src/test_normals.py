@@ -206,7 +206,7 @@ def test_datamodule_normals_switch_errors(mesh_cache):
         dm.setup("test")
 
 
-@pytest.mark.skipif(not AIRPLANES.is_file(), reason=f"{AIRPLANES} not available")
+@pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
 def test_real_airplane_normals_reach_rpmnet_with_the_files_sign(tmp_path):
     """data.normals=cache on the PointNet++ resampled airplanes: unit normals that fit the received
     points, given to RPMNet as they are (not re-signed like the centroid-signed estimates)."""

@@ -203,7 +203,7 @@ def test_ensure_cache_for_real_datasets(resampled_dir, tmp_path):
         ensure_cache("modelnet40_resampled", tmp_path, num_points=10000)
 
 
-@pytest.mark.skipif(not AIRPLANE_ZIP.is_file(), reason="shared airplane archive absent")
+@pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
 def test_real_airplane_archive(tmp_path, info_logs):
     cache = prepare("modelnet40_resampled", source=AIRPLANE_ZIP, cache_root=tmp_path, limit=5)
     train = cache.split("train")

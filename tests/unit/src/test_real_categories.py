@@ -3,7 +3,6 @@ use them (``+exp=real_unseen_category``, ``+exp=real_airplane real_train_categor
 generated archives shaped like the shared ones: one zip per category, test files withheld."""
 
 import logging
-import shutil
 from pathlib import Path
 
 import hydra
@@ -13,7 +12,6 @@ from hydra import compose, initialize_config_dir
 
 from src.config import register_resolvers
 from src.data.cache import file_sha256
-from src.data.categories import MODELNET40_CATEGORIES
 from src.data.prepare import main, prepare
 from src.data.readers import MergedReader, open_reader
 from src.errors import ConfigError, DatasetError

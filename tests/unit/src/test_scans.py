@@ -151,7 +151,7 @@ def test_bad_pair_settings_and_stages_are_config_errors(scan_dir):
         ScanPairsDataModule(source=str(scan_dir), pair={"min_overlap": 0.9, "overlap_spacing": 0.5}).setup("test")
 
 
-@pytest.mark.skipif(not BUNNY_ZIP.is_file(), reason=f"{BUNNY_ZIP} not available")
+@pytest.mark.shared_data("data/stanford/stanford_bunny_scans.zip")
 def test_bunny_ground_truth_aligns_two_real_scans_to_a_millimetre(tmp_path):
     """bun045 → bun000 with the relative pose of bun.conf, before normalisation (scans in metres)."""
     root = tmp_path / "two_scans"
