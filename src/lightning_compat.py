@@ -5,7 +5,7 @@ imported by pytorch's launcher); under a Hydra multirun that command restarts th
 every rank, so :func:`patch_ddp_subprocess_launcher` replaces it with
 :func:`src.distributed.ddp_job_command`. The replacement is installed only while the function's
 source is the one it was checked against (:data:`SOURCE_SHA256`, Lightning :data:`WRITTEN_FOR`);
-otherwise it warns and leaves Lightning alone. ``tests/test_lightning_compat.py`` fails when the
+otherwise it warns and leaves Lightning alone. ``tests/unit/src/test_lightning_compat.py`` fails when the
 installed Lightning differs: review the replacement against the new source, then update both.
 """
 

@@ -52,7 +52,7 @@ def runs(tmp_path_factory):
     """Builds the cache and a checkpoint in-process, then runs together: a 2x2 grid multirun
     (partial {prnet, rpmnet} x data.pair.noise_sigma {0.0, -0.5}; a negative noise is refused, so the two
     jobs with it fail; a key that one partial manner does not read would be refused in its jobs, see
-    tests/test_bad_input.py) and a 2-process DDP evaluation of the checkpoint;
+    tests/integration/test_bad_input.py) and a 2-process DDP evaluation of the checkpoint;
     meanwhile the same checkpoint is evaluated in this process (eval batches of 3 over 7 pairs:
     2 batches on rank 0, 1 on rank 1)."""
     tmp = tmp_path_factory.mktemp("sweeps")

@@ -1,4 +1,4 @@
-"""OMNet's fast passes compute the plain dataflow's outputs (tests/omnet_reference.py) within float tolerance:
+"""OMNet's fast passes compute the plain dataflow's outputs (tests/helpers/omnet_reference.py) within float tolerance:
 training (outputs, gradients, BatchNorm running statistics), batched evaluation and CPU inference (folded
 BatchNorm, kept points only, chunks), for both fusion maskings, shared and per-iteration weights and the ablations.
 
