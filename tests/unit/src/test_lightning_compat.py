@@ -4,20 +4,36 @@ written for, and what it builds: a DDP rank of a multirun job runs that job alon
 from __future__ import annotations
 
 import sys
+import tomllib
 
+import lightning
 import pytest
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from tests.helpers.registration_helpers import compose_config
 
+from packaging.requirements import Requirement
+from packaging.version import Version
+
 from src import lightning_compat
 from src.distributed import ddp_job_command, distributed_job_scope
+from tests.helpers.paths import ROOT
+
+
+def test_the_installed_lightning_is_in_the_range_pyproject_requires():
+    with (ROOT / "pyproject.toml").open("rb") as f:
+        dependencies = tomllib.load(f)["project"]["dependencies"]
+    (pinned,) = [Requirement(d).specifier for d in dependencies if Requirement(d).name == "lightning"]
+    assert pinned.contains(Version(lightning.__version__)), \
+        f"Lightning {lightning.__version__} is outside pyproject.toml's lightning{pinned}"
+    assert lightning_compat.supported_lightning() == pinned
+    assert any(s.operator == "<" for s in pinned), f"lightning{pinned}: an upper bound (the patch is checked per minor)"
 
 
 def test_the_patched_function_is_the_one_the_patch_was_written_for():
     change = lightning_compat.upstream_change()
     assert change is None, (f"{change}: review src.distributed.ddp_job_command against the new source, then set "
-                            "WRITTEN_FOR and SOURCE_SHA256 in src/lightning_compat.py")
+                            "SOURCE_SHA256 in src/lightning_compat.py and the lightning range in pyproject.toml")
     assert lightning_compat.patch_ddp_subprocess_launcher()
     for launcher in lightning_compat._launchers():
         assert launcher._hydra_subprocess_cmd.func is ddp_job_command
