@@ -32,7 +32,7 @@ def cache_root(tmp_path_factory) -> Path:
 def _datamodule(cache_root: Path, *overrides: str, exp: str = "real_airplane"):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose("config", overrides=[f"+exp={exp}", *(("test_size=4", "val_size=2") if exp == "real_airplane" else ("val_size=4",)), f"data.cache_root={cache_root}",
-                                           "data.num_workers=0", "output_dir=/tmp/unused", *overrides])
+                                           "data.num_workers=0", f"output_dir={cache_root / 'unused'}", *overrides])
     return hydra.utils.instantiate(cfg.data)
 
 
@@ -104,7 +104,7 @@ def test_stanford_bunny_gives_repeated_fixed_pairs(tmp_path):
     prepare("stanford", source=bunny, cache_root=tmp_path, num_samplings=4, workers=1)
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose("config", overrides=["+exp=stanford", "pairs_per_scan=3", f"data.cache_root={tmp_path}",
-                                           "data.num_workers=0", "output_dir=/tmp/unused"])
+                                           "data.num_workers=0", f"output_dir={tmp_path / 'unused'}"])
     dm = hydra.utils.instantiate(cfg.data)
     dm.setup("test")
     pairs = [dm.datasets["test"][i] for i in range(3)]

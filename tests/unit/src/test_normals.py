@@ -215,7 +215,7 @@ def test_real_airplane_normals_reach_rpmnet_with_the_files_sign(tmp_path):
     with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=real_airplane", "test_size=1", "val_size=1", "val_repeat=2", "partial=rpmnet", "data.normals=cache",
                                            f"data.cache_root={tmp_path}", "data.num_workers=0",
-                                           "output_dir=/tmp/unused"])
+                                           f"output_dir={tmp_path / 'unused'}"])
     dm = hydra.utils.instantiate(cfg.data)
     dm.setup("validate")
     batch = next(iter(dm.val_dataloader()))

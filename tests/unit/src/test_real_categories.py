@@ -101,7 +101,7 @@ def test_merged_reader_loads_each_shape_from_its_archive(zips):
 def _datamodule(cache_root: Path, *overrides: str):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=[f"data.cache_root={cache_root}", "data.num_workers=0",
-                                           "output_dir=/tmp/unused", *overrides])
+                                           f"output_dir={cache_root / 'unused'}", *overrides])
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.setup()
     return datamodule

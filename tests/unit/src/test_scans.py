@@ -103,7 +103,7 @@ def test_a_zip_reads_as_its_folder(scan_dir, make_zip):
 def test_exp_scan_pairs_composes_the_scan_datamodule(scan_dir):
     with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["+exp=scan_pairs", f"data.source={scan_dir}", "data.pair.min_overlap=0.5",
-                                           "output_dir=/tmp/unused"])
+                                           f"output_dir={scan_dir.parent / 'unused'}"])
     dm = hydra.utils.instantiate(cfg.data)
     dm.setup("test")
     assert len(dm.datasets["test"]) == 2 and cfg.partial == "prnet"
