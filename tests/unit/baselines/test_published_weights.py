@@ -139,17 +139,30 @@ def test_dcp_v1_matches_the_authors_code():
     torch.testing.assert_close(transform[:, :3, 3], data["translation"], atol=5e-4, rtol=0)
 
 
-@needs("learning3d_pointnetlk")
-def test_learning3d_pointnetlk_matches_the_authors_code_and_fixes_its_translation():
-    data = fixture("learning3d_pointnetlk")
-    network = published_module("official:learning3d_pointnetlk").network
+def run_published_lk(name: str, linearize):
+    """The published PointNetLK-style network ``name`` on its fixture: ``linearize(network, centred
+    template) -> (features, jacobian)`` and the registration, in eval mode; the features must be the
+    authors'. Returns (fixture, jacobian, output)."""
+    data = fixture(name)
+    network = published_module(f"official:{name}").network
     template, source = data["template"], data["source"]
     centred = template - template.mean(dim=1, keepdim=True)
     with torch.no_grad(), eval_mode(network.encoder):
-        features = network.features(centred)
-        jacobian = lk_jacobian(network.features, centred, network.delta, features)
+        features, jacobian = linearize(network, centred)
         out = network(source, template)
     torch.testing.assert_close(features, data["features"], atol=1e-4, rtol=1e-5)
+    return data, jacobian, out
+
+
+def _learning3d_linearize(network, centred):
+    features = network.features(centred)
+    return features, lk_jacobian(network.features, centred, network.delta, features)
+
+
+@needs("learning3d_pointnetlk")
+def test_learning3d_pointnetlk_matches_the_authors_code_and_fixes_its_translation():
+    data, jacobian, out = run_published_lk("learning3d_pointnetlk", _learning3d_linearize)
+    template, source = data["template"], data["source"]
     torch.testing.assert_close(jacobian, data["jacobian"], atol=2e-3, rtol=1e-4)  # finite differences, δ = 0.01
     assert len(out["transforms"]) == 10 and out["iterations"] == int(data["iterations"])
     torch.testing.assert_close(out["residual"], data["residual"], atol=1e-3, rtol=1e-4)
@@ -165,14 +178,7 @@ def test_learning3d_pointnetlk_matches_the_authors_code_and_fixes_its_translatio
 
 @needs("pointnetlk_revisited")
 def test_pointnetlk_revisited_matches_the_authors_code():
-    data = fixture("pointnetlk_revisited")
-    network = published_module("official:pointnetlk_revisited").network
-    template, source = data["template"], data["source"]
-    centred = template - template.mean(dim=1, keepdim=True)
-    with torch.no_grad(), eval_mode(network.encoder):
-        features, jacobian = network.linearize(centred)
-        out = network(source, template)
-    torch.testing.assert_close(features, data["features"], atol=1e-4, rtol=1e-5)
+    data, jacobian, out = run_published_lk("pointnetlk_revisited", lambda network, centred: network.linearize(centred))
     torch.testing.assert_close(jacobian, -data["jacobian"], atol=1e-4, rtol=1e-5)  # theirs: ∂φ(exp(−ξ)P)/∂ξ
     assert len(out["transforms"]) == 20 and out["iterations"] == int(data["iterations"]) - 1  # theirs counts the stop test
     torch.testing.assert_close(out["transforms"][-1], data["transform"], atol=1e-4, rtol=0)

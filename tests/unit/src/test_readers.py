@@ -35,12 +35,19 @@ def test_parse_off_errors_name_the_file(data, cause):
         parse_off(data, "m.off")
 
 
+def _open_source(folder, make_zip, zipped: bool, layout: str, reader_type: type):
+    """The reader of ``folder`` (or of its zip): its layout detected as ``layout``, a ``reader_type``
+    holding the two categories of the fixtures."""
+    source = make_zip(folder) if zipped else folder
+    assert detect_layout(source) == layout
+    reader = open_reader(source)
+    assert isinstance(reader, reader_type) and reader.categories == ["airplane", "chair"]
+    return reader
+
+
 @pytest.mark.parametrize("zipped", [False, True])
 def test_princeton_reader(princeton_dir, make_zip, zipped):
-    source = make_zip(princeton_dir) if zipped else princeton_dir
-    assert detect_layout(source) == "princeton_off"
-    reader = open_reader(source)
-    assert isinstance(reader, PrincetonOffReader) and reader.categories == ["airplane", "chair"]
+    reader = _open_source(princeton_dir, make_zip, zipped, "princeton_off", PrincetonOffReader)
     assert [e.name for e in reader.entries["train"]] == ["airplane_0001", "airplane_0002", "chair_0001"]
     assert [e.name for e in reader.entries["test"]] == ["airplane_0003", "chair_0002"]
     shapes = list(reader.iter_shapes("train", limit=2))
@@ -57,10 +64,7 @@ def test_princeton_reader_reports_an_empty_split(princeton_dir):
 
 @pytest.mark.parametrize("zipped", [False, True])
 def test_pointnet_h5_reader(h5_dir, make_zip, zipped):
-    source = make_zip(h5_dir) if zipped else h5_dir
-    assert detect_layout(source) == "pointnet_h5"
-    reader = open_reader(source)
-    assert isinstance(reader, PointNetH5Reader) and reader.categories == ["airplane", "chair"]
+    reader = _open_source(h5_dir, make_zip, zipped, "pointnet_h5", PointNetH5Reader)
     assert [(e.name, e.category) for e in reader.entries["train"]] == [
         ("airplane_0001", "airplane"), ("chair_0001", "chair"), ("airplane_0002", "airplane")
     ]
@@ -77,10 +81,8 @@ def test_pointnet_h5_reader_needs_shape_names(h5_dir):
 
 @pytest.mark.parametrize("zipped", [False, True])
 def test_resampled_reader_restricts_to_present_categories(resampled_dir, make_zip, zipped):
-    source = make_zip(resampled_dir) if zipped else resampled_dir
-    assert detect_layout(source) == "pointnet2_resampled"
-    reader = open_reader(source)
-    assert isinstance(reader, ResampledReader) and reader.categories == ["airplane", "chair"]  # no bathtub folder
+    # the split lists name bathtub shapes too, but it has no folder
+    reader = _open_source(resampled_dir, make_zip, zipped, "pointnet2_resampled", ResampledReader)
     assert [e.name for e in reader.entries["train"]] == ["airplane_0001", "airplane_0002", "chair_0001"]
     assert not reader.missing
     shape = reader.load(reader.entries["test"][1])
