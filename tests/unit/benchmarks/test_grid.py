@@ -1,6 +1,7 @@
 """benchmarks.grid on a tiny synthetic set-up: the tidy frame, its numbers, resumability, failures, errors."""
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -14,9 +15,11 @@ import benchmarks.grid as grid
 import benchmarks.grid_run as grid_run
 from baselines import get_registrator, register_registrator
 from baselines.testing import ToyRegistrator
+from benchmarks.tables import build_table, fmt
 from src.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
 from src.metrics import METRIC_NAMES, RegistrationMetrics
 from src.pair_sets import TestSet
+from tests.helpers.markdown import markdown_table
 from tests.helpers.paths import CONF as CONF_DIR
 
 CONF = str(CONF_DIR)
@@ -117,7 +120,18 @@ def test_grid_tidy_frame_matches_metrics_by_hand_and_flags_failures(tmp_path, ca
     assert (tmp_path / "out" / "results.parquet").is_file() and (tmp_path / "out" / "results.csv").is_file()
     assert (tmp_path / "out" / "table.md").is_file() is False  # written by report(), not run_grid
     grid.report(result, grid_cfg(tmp_path / "out", cache_root))
-    assert "ICP" in (tmp_path / "out" / "table.md").read_text() and (tmp_path / "out" / "table.tex").is_file()
+    assert (tmp_path / "out" / "table.tex").is_file()
+    _, written = markdown_table((tmp_path / "out" / "table.md").read_text())
+    table = build_table(result.tidy, "table1")  # the grid's tidy frame in the paper's layout (no paper rows here)
+    assert written["Method"].tolist() == [name for block in table.blocks
+                                          for name in [f"***{block.label}***", *(row.label for row in block.rows)]]
+    body = [cells for cells in written.values.tolist() if not cells[0].startswith("***")]
+    for cells, row in zip(body, [row for block in table.blocks for row in block.rows]):  # bold/underline aside
+        assert [re.sub(r"^\*\*(.*)\*\*$|^<u>(.*)</u>$", r"\1\2", cell) for cell in cells[1:]] == [
+            fmt(value, metric) for value, (metric, _) in zip(row.values, table.columns)]
+    icp = tidy[(tidy["method"] == "ICP") & (tidy["partial"] == "prnet")].set_index("metric")["value"]
+    column = 1 + table.columns.index(("Error(R)", "TS"))
+    assert body[0][0] == "ICP" and body[0][column] == f"**{fmt(icp['Error(R)'], 'Error(R)')}**"  # the tidy number, best
 
 
 def test_rerun_reuses_finished_cells(tmp_path, cache_root, monkeypatch):

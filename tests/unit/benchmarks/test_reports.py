@@ -17,7 +17,8 @@ from benchmarks.grid import run_grid
 from benchmarks.latex_check import check_latex, count_columns, tabular_rows, tabulars
 from benchmarks.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
 from benchmarks.plots import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures, main as plots_main
-from benchmarks.tables import build_table, main as tables_main, to_latex, to_markdown
+from benchmarks.tables import build_table, fmt, main as tables_main, to_latex, to_markdown
+from tests.helpers.markdown import markdown_table, markdown_tables
 from tests.helpers.scan_helpers import write_scan_set
 from src.paths import REPO_ROOT, shared_path
 
@@ -99,8 +100,15 @@ def test_table1_layout_ranks_and_paper_rows(paper_dir):
     assert row[1] == "2.400" and row[3] == "3.600"  # RMSE(R) OS, MAE(R) OS with 3 decimals
     assert next(r for r in tabular_rows(body) if r[0] == "OMNet")[1] == "\\textbf{2.000}"
     assert "\\quad\\textit{paper} & \\textit{2.000}" in tex and "1.00$\\times$" in tex
-    markdown = to_markdown(table)
-    assert "| ↳ *paper* | *2.000* |" in markdown and "**2.000**" in markdown and "<u>2.200</u>" in markdown
+    _, markdown = markdown_table(to_markdown(table))
+    rows, metrics = table.blocks[0].rows, [metric for metric, _ in table.columns]
+    body = markdown.values.tolist()[1:1 + len(rows)]  # under the block's label row
+    assert markdown.iloc[0, 0] == "***(a) Unseen shapes***"
+    assert [row[0] for row in body] == ["ICP", "↳ *paper*", "↳ *ours/paper*", "DCP", "OMNet", "↳ *paper*", "↳ *ours/paper*"]
+    assert body[4][1:] == [f"**{fmt(v, m)}**" for v, m in zip(omnet.values, metrics)]  # rank 1: bold
+    assert body[0][1:] == [f"<u>{fmt(v, m)}</u>" for v, m in zip(icp.values, metrics)]  # rank 2: underlined
+    assert body[5][1:] == [f"*{fmt(v, m)}*" for v, m in zip(rows[5].values, metrics)]  # the paper's: italic
+    assert (body[4][1], body[5][1], body[0][1]) == ("**2.000**", "*2.000*", "<u>2.200</u>")
 
 
 def test_table2_and_table3_layouts(paper_dir):
@@ -128,7 +136,9 @@ def test_tables_cli_writes_latex_and_markdown(paper_dir, tmp_path, capsys):
     assert code == 0
     assert (tmp_path / "t" / "table1.tex").is_file() and (tmp_path / "t" / "table1.md").is_file()
     assert "\\documentclass" in (tmp_path / "t" / "table1_standalone.tex").read_text()
-    assert "| OMNet |" in capsys.readouterr().out
+    (_, printed), = markdown_tables(capsys.readouterr().out)
+    _, written = markdown_table((tmp_path / "t" / "table1.md").read_text())
+    assert printed.equals(written) and {"OMNet", "ICP"} <= set(written["Method"])
     assert tables_main([str(tmp_path / "ours.csv"), "--layout", "table2", "--metrics", "bogus", "--out", str(tmp_path / "t")]) == 2
 
 
@@ -207,11 +217,18 @@ def test_scan_pairs_table_and_plot_bin_a_grid_by_overlap(tmp_path, capsys):
     pairs = run_grid(cfg).pairs
     assert plots_main(["scan-pairs", str(tmp_path / "grid"), *data, "--out", str(tmp_path / "out")]) == 0
     table = capsys.readouterr().out
-    identity = pairs[pairs["method"] == "identity"]["Error(R)"].to_numpy()  # pairs (a,b), (b,a), (b,c), (c,b)
-    low, mid = identity[2:].mean(), identity[:2].mean()
-    assert f"| Identity (no registration) | 2 / 2 / 0 | {low:.2f} | {mid:.2f} | -- | {identity.mean():.2f} |" in table
+    report = (tmp_path / "out" / "scan_pairs_by_overlap.md").read_text()
+    for metric, digits in (("Error(R)", 2), ("Error(t)", 3)):
+        _, by_overlap = markdown_table(report, f"{metric}, mean")
+        assert by_overlap.columns.tolist() == ["Method", "pairs", "< 50 %", "50-70 %", "> 70 %", "all"]
+        assert by_overlap["Method"].tolist() == ["Identity (no registration)", "ICP"]
+        for label, method in (("Identity (no registration)", "identity"), ("ICP", "icp")):
+            errors = pairs[pairs["method"] == method][metric].to_numpy()  # pairs (a,b), (b,a), (b,c), (c,b)
+            row = by_overlap[by_overlap["Method"] == label].iloc[0].tolist()
+            assert row[1:] == ["2 / 2 / 0", f"{errors[2:].mean():.{digits}f}", f"{errors[:2].mean():.{digits}f}", "--",
+                               f"{errors.mean():.{digits}f}"]
     assert (tmp_path / "out" / "scan_pairs_error_vs_overlap.png").stat().st_size > 10_000
-    assert (tmp_path / "out" / "scan_pairs_by_overlap.md").read_text() in table
+    assert report in table  # printed as written
     other = [*data[:2], "data.pair.min_overlap=0.5", data[3]]
     assert plots_main(["scan-pairs", str(tmp_path / "grid"), *other]) == 2
     assert "ran on other pairs than scan_pairs/ts/prnet" in capsys.readouterr().err

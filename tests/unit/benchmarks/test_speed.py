@@ -6,6 +6,7 @@ import benchmarks.speed as speed
 from src.machine_speed import MatmulReference
 from baselines import register_registrator
 from baselines.testing import ToyRegistrator
+from tests.helpers.markdown import markdown_table, markdown_tables
 
 register_registrator("toy", ToyRegistrator)
 
@@ -18,9 +19,11 @@ def test_speed_table_for_a_toy_method_at_two_sizes(tmp_path, capsys):
     assert list(frame["points"]) == [32, 64] and set(frame["method"]) == {"toy"} and set(frame["device"]) == {"cpu"}
     assert (frame["runs"] == 3).all() and (frame["ms_per_pair"] > 0).all() and (frame["weights"] == "none").all()
     markdown = (tmp_path / "speed.md").read_text()
-    assert "| # points | toy |" in markdown and "| 32 |" in markdown and "| 64 |" in markdown
-    assert "CPU:" in markdown and "median over 3" in markdown
-    assert "| # points | toy |" in capsys.readouterr().out
+    title, table = markdown_table(markdown, "Speed (ms per pair, median)")
+    assert table.columns.tolist() == ["# points", "toy"] and table["# points"].tolist() == ["32", "64"]
+    assert table["toy"].tolist() == [speed._fmt_ms(ms) for ms in frame["ms_per_pair"]]  # the CSV's numbers
+    assert "CPU:" in title and "median over 3" in markdown  # the device; the notes under the table
+    assert markdown_tables(capsys.readouterr().out)[0][1].equals(table)  # printed too
 
 
 def test_untrained_network_is_labelled(tmp_path):
@@ -30,7 +33,9 @@ def test_untrained_network_is_labelled(tmp_path):
     frame = pd.read_csv(tmp_path / "speed.csv").set_index("method_id")
     assert frame.loc["omnet", "weights"] == "untrained" and frame.loc["omnet", "method"] == "OMNet (untrained)"
     markdown = (tmp_path / "speed.md").read_text()
-    assert "| # points | toy | OMNet† |" in markdown and "† freshly initialised weights" in markdown
+    _, table = markdown_table(markdown, "Speed (ms per pair, median)")
+    assert table.columns.tolist() == ["# points", "toy", "OMNet†"] and "† freshly initialised weights" in markdown
+    assert table.loc[0, "OMNet†"] == speed._fmt_ms(frame.loc["omnet", "ms_per_pair"])
 
 
 def test_speed_errors_are_one_line(tmp_path, capsys):
@@ -51,12 +56,25 @@ def test_batched_throughput_table_for_a_network(tmp_path):
     assert (frame.loc[frame["method_id"] == "toy", "batch"] == 1).all()  # classical methods: one pair per call
     assert ((frame["pairs_per_s"] - 1000.0 / frame["ms_per_pair"]).abs() < 1e-6 * frame["pairs_per_s"]).all()
     markdown = (tmp_path / "speed.md").read_text()
-    assert "| # points | toy | OMNet [bf16]† |" in markdown
-    assert "**Throughput (pairs per second)" in markdown and "OMNet (untrained) [bf16] B=4" in markdown
+    _, table = markdown_table(markdown, "Speed (ms per pair, median)")
+    assert table.columns.tolist() == ["# points", "toy", "OMNet [bf16]†"] and table["# points"].tolist() == ["32", "48"]
+    _, throughput = markdown_table(markdown, "Throughput (pairs per second)")
+    omnet = frame[frame["method_id"] == "omnet"]
+    label = omnet["method"].iloc[0]
+    assert label == "OMNet (untrained) [bf16]"
+    assert throughput.columns.tolist() == ["# points", f"{label} B=1", f"{label} B=4"]
+    for batch in (1, 4):
+        rates = omnet[omnet["batch"] == batch].sort_values("points")["pairs_per_s"]
+        assert throughput[f"{label} B={batch}"].tolist() == [speed.format_rate(r) for r in rates]
     network = frame[frame["method_id"] == "omnet"]
     assert (network["gflop_per_call"] > 0).all() and (network["pct_of_mm"] > 0).all() and (network["mm_gflop_per_s"] > 0).all()
     assert frame.loc[frame["method_id"] == "toy", "gflop_per_s"].isna().all()  # no network: no FLOPs counted
-    assert "**Distance to the limit" in markdown and " %) |" in markdown
+    _, limit = markdown_table(markdown, "Distance to the limit")
+    assert limit.columns.tolist() == ["# points", f"{label} B=1", f"{label} B=4"]
+    for batch in (1, 4):
+        cells = omnet[omnet["batch"] == batch].sort_values("points")
+        assert limit[f"{label} B={batch}"].tolist() == [
+            f"{rate:.1f} ({pct:.0f} %)" for rate, pct in zip(cells["gflop_per_s"], cells["pct_of_mm"])]
 
 
 def test_flops_are_the_matrix_products_of_a_call():

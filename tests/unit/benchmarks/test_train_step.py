@@ -2,7 +2,11 @@
 
 import pandas as pd
 
+from benchmarks.speed import format_rate
 from benchmarks.train_step import main, pair_batch
+from tests.helpers.markdown import markdown_table
+
+COLUMNS = ["# points", "precision", "compile", "ms/step (median)", "pairs/s", "vs eager fp32", "GFLOP/s", "% of mm"]
 
 
 def test_train_step_table(tmp_path, capsys):
@@ -14,9 +18,14 @@ def test_train_step_table(tmp_path, capsys):
     assert (frame["ms_per_step"] > 0).all() and (frame["steps"] == 2).all()
     assert (frame["gflop_per_step"] > 0).all() and (frame["pct_of_mm"] > 0).all()
     assert frame.loc[2, "gflop_per_step"] > frame.loc[0, "gflop_per_step"]  # 64 points: more products than 48
-    markdown = (tmp_path / "train_step.md").read_text()
-    assert "| 48 | fp32 | none |" in markdown and "1.00×" in markdown and "batch 2 — CPU:" in markdown
-    assert "| GFLOP/s | % of mm |" in markdown
+    title, table = markdown_table((tmp_path / "train_step.md").read_text(), "Training step of")
+    assert "batch 2 — CPU:" in title and table.columns.tolist() == COLUMNS
+    assert table[["# points", "precision", "compile"]].values.tolist() == [
+        [str(p), precision, "none"] for p, precision in zip(frame["points"], frame["precision"])]
+    assert table["ms/step (median)"].tolist() == [f"{ms:.1f}" for ms in frame["ms_per_step"]]  # the CSV's numbers
+    assert table["pairs/s"].tolist() == [format_rate(rate) for rate in frame["pairs_per_s"]]
+    assert table["% of mm"].tolist() == [f"{pct:.0f}" for pct in frame["pct_of_mm"]]
+    assert table.loc[table["precision"] == "fp32", "vs eager fp32"].tolist() == ["1.00×", "1.00×"]
     assert main(["--device", "cpu", "--precisions", "fp16", "--out", str(tmp_path)]) == 2
     assert "unknown precision 'fp16'" in capsys.readouterr().err
 
@@ -46,7 +55,11 @@ def test_a_failing_configuration_is_recorded_not_fatal(tmp_path, monkeypatch):
                  "--warmup", "0", "--compile", "none", "--out", str(tmp_path)]) == 0
     frame = pd.read_csv(tmp_path / "train_step.csv").set_index("precision")
     assert frame.loc["fp32", "ms_per_step"] > 0 and pd.isna(frame.loc["bf16", "ms_per_step"])
-    assert "| 48 | bf16 | none | failed: FloatingPointError: non-finite loss" in (tmp_path / "train_step.md").read_text()
+    _, table = markdown_table((tmp_path / "train_step.md").read_text(), "Training step of")
+    failed = table.set_index("precision").loc["bf16"]
+    assert failed["# points"] == "48" and failed["compile"] == "none"
+    assert failed["ms/step (median)"].startswith("failed: FloatingPointError: non-finite loss")
+    assert failed[COLUMNS[4:]].tolist() == ["-"] * 4
 
 
 def test_profile_writes_the_operators_with_the_most_cpu_time(tmp_path):
