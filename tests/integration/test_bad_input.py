@@ -14,7 +14,6 @@ from pathlib import Path
 import hydra
 import pytest
 import torch
-from tests.helpers.registration_helpers import CONF, TINY, compose_config
 
 import src.eval
 import src.train
@@ -25,6 +24,7 @@ from src.train import train
 from src.trainer import build_trainer
 from src.data.datamodule import check_pair_layout
 from src.validation import validate_config
+from tests.helpers.registration_helpers import CONF, TINY, compose_config
 
 ROOT = CONF.parent
 SHIPPED = ROOT / "checkpoints" / "omnet_unseen_categories_synthetic_ts_prnet.ckpt"

@@ -7,11 +7,11 @@ import sys
 
 import pytest
 import torch
-from tests.helpers.registration_helpers import tiny_config
 
 from src.errors import CheckpointError
 from src.eval import evaluate
 from src.train import train
+from tests.helpers.registration_helpers import tiny_config
 
 
 @pytest.mark.parametrize("exp", ["unseen_shapes", "unseen_categories", "gaussian_noise"])

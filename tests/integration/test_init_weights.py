@@ -6,10 +6,10 @@ import json
 
 import pytest
 import torch
-from tests.helpers.registration_helpers import RESUME_RUN, last_weights, tiny_config
 
 from src.errors import CheckpointError, ConfigError
 from src.train import train
+from tests.helpers.registration_helpers import RESUME_RUN, last_weights, tiny_config
 
 
 @pytest.fixture(scope="module")

@@ -7,13 +7,13 @@ import shutil
 
 import pytest
 import torch
-from tests.helpers.registration_helpers import tiny_config
 
 from src.errors import CheckpointError
 from src.eval import evaluate
 from src.models.module import RegistrationModule
 from src.models.pretrained import SHIPPED_DIR, export, find_shipped, main
 from src.train import train
+from tests.helpers.registration_helpers import tiny_config
 
 IDENTITY = {"task": "unseen_shapes", "dataset": "synthetic", "sampling": "ts", "partial": "prnet"}
 

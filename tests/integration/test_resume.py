@@ -14,6 +14,13 @@ import time
 import numpy as np
 import pytest
 import torch
+
+from src.callbacks import RngState, set_rng_states
+from src.data.dataset import EpochSampler
+from src.errors import CheckpointError, ConfigError
+from src.reporting import read_csv_logs
+import src.train
+from src.train import train
 from tests.helpers.registration_helpers import (
     CONF,
     RESUME_RUN,
@@ -24,13 +31,6 @@ from tests.helpers.registration_helpers import (
     last_weights,
     tiny_config,
 )
-
-from src.callbacks import RngState, set_rng_states
-from src.data.dataset import EpochSampler
-from src.errors import CheckpointError, ConfigError
-from src.reporting import read_csv_logs
-import src.train
-from src.train import train
 
 # 14 synthetic train shapes at batch 2, last.ckpt after every step (RESUME_RUN); the interrupted run is
 # killed (an exception) at the start of step `stop`, as a device session's time limit would.

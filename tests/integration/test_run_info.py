@@ -8,12 +8,12 @@ import sys
 from types import SimpleNamespace
 
 import pytest
-from tests.helpers.registration_helpers import TINY, compose_config
 
 import hydra
 from src.config import loader_workers
 from src.run_info import TrainingForecast, format_duration
 from src.evaluated import PairCounter, evaluated_record
+from tests.helpers.registration_helpers import TINY, compose_config
 
 PAPER_EXPERIMENTS = ("unseen_shapes", "unseen_categories", "gaussian_noise")
 

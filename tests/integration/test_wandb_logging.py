@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
-from tests.helpers.registration_helpers import compose_config, tiny_config
 
 from src.wandb_logging import COLOURS, PAIR_COLUMNS, log_grid, read_offline_run, run_group
+from tests.helpers.registration_helpers import compose_config, tiny_config
 
 pytest.importorskip("wandb", reason="wandb not installed: pip install wandb (or pip install -e '.[dev]')")
 

@@ -10,10 +10,10 @@ from hydra import compose, initialize_config_dir
 
 from benchmarks.figures import main, pick_pairs
 from benchmarks.grid import run_grid
-from tests.helpers.scan_helpers import write_scan_set
 from src.errors import ConfigError
 from src.models.pretrained import SHIPPED_DIR
 from src.paths import REPO_ROOT
+from tests.helpers.scan_helpers import write_scan_set
 
 OMNET = next(SHIPPED_DIR.glob("omnet*.ckpt"), None)
 

@@ -18,9 +18,9 @@ from benchmarks.latex_check import check_latex, count_columns, tabular_rows, tab
 from benchmarks.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
 from benchmarks.plots import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures, main as plots_main
 from benchmarks.tables import build_table, fmt, main as tables_main, to_latex, to_markdown
+from src.paths import REPO_ROOT, shared_path
 from tests.helpers.markdown import markdown_table, markdown_tables
 from tests.helpers.scan_helpers import write_scan_set
-from src.paths import REPO_ROOT, shared_path
 
 METRICS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "Error(R)", "Error(t)")
 REAL_PAPER_DIR = shared_path("reference", "paper_tables")

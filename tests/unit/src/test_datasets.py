@@ -7,11 +7,11 @@ import inspect
 
 import pytest
 from omegaconf import OmegaConf
-from tests.helpers.registration_helpers import CONF, compose_config
 
 from src.data import prepare, readers
 from src.data.datasets import DATASET_NAMES, DATASETS, SOURCE_LAYOUTS, get_dataset, read_sources, source_of
 from src.errors import ConfigError
+from tests.helpers.registration_helpers import CONF, compose_config
 
 CACHE_DATAMODULE = "src.data.datamodule.RegistrationDataModule"
 #: conf/data/*.yaml composed as data=<name>: those of the cache's datamodule are the records' configs.

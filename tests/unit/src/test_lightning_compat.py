@@ -10,13 +10,13 @@ import lightning
 import pytest
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from tests.helpers.registration_helpers import compose_config
 
 from packaging.requirements import Requirement
 from packaging.version import Version
 
 from src import lightning_compat
 from src.distributed import ddp_job_command, distributed_job_scope
+from tests.helpers.registration_helpers import compose_config
 from tests.helpers.paths import ROOT
 
 

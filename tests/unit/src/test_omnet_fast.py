@@ -11,9 +11,9 @@ import copy
 import pytest
 import torch
 
+from src.models.omnet import OMNet, OMNetIteration
 from tests.helpers.omnet_reference import _iteration, reference_forward
 from tests.helpers.registration_helpers import partial_pair_batch
-from src.models.omnet import OMNet, OMNetIteration
 
 TOL = dict(rtol=1e-7, atol=1e-8)
 CONFIGS = {

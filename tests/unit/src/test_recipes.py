@@ -13,6 +13,14 @@ import lightning as L
 import pytest
 import torch
 from omegaconf import OmegaConf
+from torch import nn
+from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
+from torch.utils.data import DataLoader
+
+from src.errors import ConfigError
+from src.models.module import RegistrationModule, WarmupCosine
+from src.train import train
+from src.trainer import build_trainer
 from tests.helpers.registration_helpers import (
     CONF,
     RESUME_RUN,
@@ -24,14 +32,6 @@ from tests.helpers.registration_helpers import (
     reload_via_checkpoint,
     tiny_config,
 )
-from torch import nn
-from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
-from torch.utils.data import DataLoader
-
-from src.errors import ConfigError
-from src.models.module import RegistrationModule, WarmupCosine
-from src.train import train
-from src.trainer import build_trainer
 
 MODELS = sorted(p.stem for p in (CONF / "model").glob("*.yaml"))
 RECIPES = sorted(p.stem for p in (CONF / "recipe").glob("*.yaml"))
