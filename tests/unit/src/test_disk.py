@@ -141,7 +141,7 @@ def test_a_full_disk_while_training_logs_is_one_line_and_keeps_the_checkpoints(t
     import csv
 
     import src.train
-    from registration_helpers import TINY, compose_config
+    from tests.helpers.registration_helpers import TINY, compose_config
 
     run = tmp_path / "run"
     cfg = compose_config(*TINY, f"data.cache_root={tmp_path / 'cache'}", f"output_dir={run}", "+exp=unseen_shapes",
