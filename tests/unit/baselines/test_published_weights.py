@@ -188,6 +188,7 @@ def test_pointnetlk_revisited_matches_the_authors_code():
 
 
 @needs("dcp_v1")
+@needs("learning3d_pointnet_classifier_features")  # its wrong-method refusal
 def test_python_api_and_wrong_method():
     data = fixture("dcp_v1")
     registrator = get_registrator("dcp", weights="official:dcp_v1", device="cpu")
