@@ -33,7 +33,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    from baselines.classical.goicp import goicp_available  # imported only to collect, never at conftest import
+    from baselines.classical.goicp import goicp_available  # imported at collection, not when the conftest loads
 
     run_slow, has_goicp = config.getoption("--run-slow"), goicp_available()
     for item in items:
