@@ -12,6 +12,7 @@ Plain helpers (archive writers, meshes, configs) are in :mod:`tests.helpers`.
 """
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -40,6 +41,25 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         reason = skip_reason(item, run_slow, has_goicp)
         if reason is not None:
             item.add_marker(pytest.mark.skip(reason=reason))
+
+
+def _loggers() -> list[logging.Logger]:
+    return [logging.root, *(x for x in logging.Logger.manager.loggerDict.values() if isinstance(x, logging.Logger))]
+
+
+@pytest.fixture(autouse=True)
+def _drop_logging_handlers_a_test_left():
+    """A test that configures logging (a CLI's ``logging.basicConfig``, Hydra's job logging) leaves handlers
+    on the streams pytest captured for it, closed once it ends: a later test's records then go there
+    ("I/O operation on closed file", breaking e.g. test_disk's one-line error). Removed after each test
+    (pytest's own capture handlers aside)."""
+    before = {id(logger): list(logger.handlers) for logger in _loggers()}
+    yield
+    for logger in _loggers():
+        kept = before.get(id(logger), [])
+        for handler in [h for h in logger.handlers if h not in kept and not type(h).__module__.startswith("_pytest")]:
+            logger.removeHandler(handler)
+            handler.close()
 
 
 # --- tiny ModelNet40 archives in the three layouts (folder; ``make_zip`` zips one) ----------
