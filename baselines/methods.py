@@ -10,8 +10,9 @@ method list and ``method_options`` (:mod:`benchmarks.grid_plan`), and the speed 
 and column order (:mod:`benchmarks.speed`). Published weights name their
 method (``Published.method`` in :mod:`baselines.learned.published`).
 
-Adding a method means adding its record to ``baselines/methods.yaml`` (and its code); ``tests/test_methods.py`` checks that
-every record composes, registers a pair and appears in the tables.
+Adding a method means adding its record to ``baselines/methods.yaml`` (and its code);
+``tests/unit/baselines/test_methods.py`` checks that every record composes, registers a pair and
+appears in the tables.
 
     python -m baselines                  # the registry as a Markdown table: key, name, kind, paper, code
 

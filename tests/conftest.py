@@ -1,42 +1,74 @@
-"""Shared test settings: single-threaded torch (tiny tensors run faster, and tests stay stable on 2 cores)."""
+"""Shared test settings and fixtures, visible to every folder under tests/.
 
+Single-threaded torch (tiny tensors run faster, and tests stay stable on 2 cores), and the markers of
+pyproject.toml, skipped here in one place:
+
+- ``slow``: runs only with ``--run-slow``;
+- ``shared_data("data/<file>", ...)``: skipped when a named file of the shared folder
+  (:func:`src.paths.shared_path`: ``../shared`` or ``$OMNET_SHARED_DIR``) is absent;
+- ``goicp``: skipped when the optional Go-ICP extension cannot be imported.
+
+Plain helpers (archive writers, meshes, configs) are in :mod:`tests.helpers`.
+"""
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
 import torch
+
+from src.data.categories import MODELNET40_CATEGORIES
+from tests.helpers.markers import skip_reason
+from tests.helpers.meshes import CUBE_QUADS, CUBE_TRIANGLES, CUBE_V, TETRA_F, TETRA_V, off_text
+from tests.helpers.modelnet import TRAIN, write_category
 
 torch.set_num_threads(1)
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--run-slow", action="store_true", default=False, help="also run the tests marked slow")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    from baselines.classical.goicp import goicp_available  # imported at collection, not when the conftest loads
+
+    run_slow, has_goicp = config.getoption("--run-slow"), goicp_available()
+    for item in items:
+        reason = skip_reason(item, run_slow, has_goicp)
+        if reason is not None:
+            item.add_marker(pytest.mark.skip(reason=reason))
+
+
+def _loggers() -> list[logging.Logger]:
+    return [logging.root, *(x for x in logging.Logger.manager.loggerDict.values() if isinstance(x, logging.Logger))]
+
+
+@pytest.fixture(autouse=True)
+def _drop_logging_handlers_a_test_left():
+    """A test that configures logging (a CLI's ``logging.basicConfig``, Hydra's job logging) leaves handlers
+    on the streams pytest captured for it, closed once it ends: a later test's records then go there
+    ("I/O operation on closed file", breaking e.g. test_disk's one-line error). Removed after each test
+    (pytest's own capture handlers aside)."""
+    before = {id(logger): list(logger.handlers) for logger in _loggers()}
+    yield
+    for logger in _loggers():
+        kept = before.get(id(logger), [])
+        for handler in [h for h in logger.handlers if h not in kept and not type(h).__module__.startswith("_pytest")]:
+            logger.removeHandler(handler)
+            handler.close()
+
+
 # --- tiny ModelNet40 archives in the three layouts (folder; ``make_zip`` zips one) ----------
-
-import json  # noqa: E402
-import shutil  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import h5py  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from src.data.categories import MODELNET40_CATEGORIES  # noqa: E402
-
-TETRA_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
-TETRA_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
-CUBE_V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
-CUBE_QUADS = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
-CUBE_TRIANGLES = np.concatenate([CUBE_QUADS[:, [0, 1, 2]], CUBE_QUADS[:, [0, 2, 3]]])
 
 
 @pytest.fixture
 def meshes() -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``{"tetra", "cube" (triangles), "cube_quads"}: (vertices, faces)``; the cube spans [-1, 1]^3."""
     return {"tetra": (TETRA_V, TETRA_F), "cube": (CUBE_V, CUBE_TRIANGLES), "cube_quads": (CUBE_V, CUBE_QUADS)}
-
-
-def off_text(vertices: np.ndarray, faces: np.ndarray, glued: bool = False, comment: bool = False) -> str:
-    """An OFF file; ``glued`` writes ``OFF4 4 0``, ``comment`` adds comment and blank lines."""
-    counts = f"{len(vertices)} {len(faces)} 0"
-    lines = [f"OFF{counts}"] if glued else ["OFF", *(["# a comment", ""] if comment else []), counts]
-    lines += [" ".join(map(str, v)) for v in vertices]
-    lines += [" ".join(map(str, [len(f), *f])) for f in faces]
-    return "\n".join(lines) + "\n"
 
 
 @pytest.fixture
@@ -97,3 +129,25 @@ def resampled_dir(tmp_path: Path) -> Path:
     (root / "modelnet40_train.txt").write_text("airplane_0001\nairplane_0002\nbathtub_0001\nchair_0001\n")
     (root / "modelnet40_test.txt").write_text("airplane_0003\nbathtub_0002\nchair_0002\n")
     return root
+
+
+# --- one zip per category, as the shared ones (airplane + bathtub) -------------------------
+
+
+@pytest.fixture
+def zips(tmp_path) -> dict[str, Path]:
+    """``{category: zip}`` for airplane (6 train) and bathtub (4 train)."""
+    archives = {}
+    for category, num_train in TRAIN.items():
+        folder = write_category(tmp_path / "src", category, num_train)
+        archives[category] = Path(shutil.make_archive(str(tmp_path / category), "zip", folder.parent, folder.name))
+    return archives
+
+
+@pytest.fixture
+def merged_root(zips, tmp_path) -> Path:
+    """A cache prepared from both ``zips`` (airplane + bathtub)."""
+    from src.data.prepare import prepare
+
+    prepare("modelnet40_resampled", source=list(zips.values()), cache_root=tmp_path / "cache")
+    return tmp_path / "cache"

@@ -7,7 +7,7 @@ layouts it is prepared from (:class:`Source`: the manifest's ``source_layout``, 
 of ``prepare``, where its categories come from and whether axisymmetric categories are dropped.
 Derived from :data:`DATASETS`: the cache's dataset and layout lists and its prepare hint
 (:mod:`src.data.cache`), ``prepare``'s choices, layouts, URLs and defaults (:mod:`src.data.prepare`),
-the readers' table and layout detection (:mod:`src.data.readers`); ``tests/test_datasets.py`` checks
+the readers' table and layout detection (:mod:`src.data.readers`); ``tests/unit/src/test_datasets.py`` checks
 that each record has its ``conf/data/<name>.yaml`` and that they agree.
 
 Adding a dataset means adding its record here, its reader (a new layout) and its config.

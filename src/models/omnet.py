@@ -6,7 +6,7 @@ of the previous iteration's mask logits, a quaternion + translation head, gradie
 pose between iterations, and mask labels recomputed every iteration. The Table-3 ablations (no mask
 module, no mask loss, no fusion layers, no connection, top-k masks) and λ are constructor flags.
 
-Execution (the same math; outputs equal up to float rounding, ``tests/test_omnet_fast.py``):
+Execution (the same math; outputs equal up to float rounding, ``tests/unit/src/test_omnet_fast.py``):
 
 * Batched (training; any evaluation with autograd, on a GPU or under ``torch.compile``): masks are not applied
   while they are all ones, pooled parts are max-pooled one by one (no concatenation of per-point features),

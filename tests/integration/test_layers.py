@@ -1,0 +1,68 @@
+"""The import contracts of pyproject.toml ([tool.importlinter]): the layers benchmarks > baselines > src
+only point down (an import inside a function counts too), and the modules of src and baselines import
+each other in no cycle."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from tests.helpers.paths import ROOT
+
+importlinter = pytest.importorskip("importlinter", reason="import-linter (the dev extra) is not installed")
+tomllib = pytest.importorskip("tomllib")
+
+PYPROJECT = ROOT / "pyproject.toml"
+LINT = "import sys; from importlinter.cli import lint_imports; sys.exit(lint_imports(no_cache=True, no_logo=True))"
+
+
+def _lint(cwd: Path) -> subprocess.CompletedProcess:
+    """``lint-imports`` on the packages below ``cwd``, with the pyproject.toml there."""
+    return subprocess.run([sys.executable, "-c", LINT], cwd=cwd, capture_output=True, text=True, timeout=300,
+                          env={"PYTHONPATH": str(cwd), "PATH": "/usr/bin:/bin"})
+
+
+def _config() -> dict:
+    return tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]
+
+
+def test_the_contract_names_the_layers_top_down():
+    config = _config()
+    assert set(config["root_packages"]) == {"src", "baselines", "benchmarks"}
+    layers = [c for c in config["contracts"] if c["type"] == "layers"]
+    assert [c["layers"] for c in layers] == [["benchmarks", "baselines", "src"]]
+    assert not any(c.get("ignore_imports") for c in config["contracts"])
+
+
+def test_the_import_contracts_are_kept():
+    result = _lint(ROOT)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
+    assert "BROKEN" not in result.stdout
+
+
+def test_an_upward_import_breaks_the_contract(tmp_path):
+    """The layers contract, as pyproject.toml states it, on a three-package tree whose src imports baselines
+    inside a function."""
+    config = _config()
+    layers = next(c for c in config["contracts"] if c["type"] == "layers")
+    (tmp_path / "pyproject.toml").write_text(
+        f"[tool.importlinter]\nroot_packages = {json.dumps(config['root_packages'])}\n\n"
+        f"[[tool.importlinter.contracts]]\nname = {json.dumps(layers['name'])}\ntype = \"layers\"\n"
+        f"layers = {json.dumps(layers['layers'])}\n")
+    modules = {
+        "baselines/__init__.py": "import src",
+        "benchmarks/__init__.py": "import baselines",
+        "src/__init__.py": "def load():\n    from baselines import published  # an upward import, hidden in a function\n",
+        "baselines/published.py": "",
+    }
+    for name, text in modules.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(textwrap.dedent(text))
+    result = _lint(tmp_path)
+    assert result.returncode != 0
+    assert "src is not allowed to import baselines" in result.stdout
