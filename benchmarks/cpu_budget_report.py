@@ -110,7 +110,7 @@ def plot(curves: pd.DataFrame, out: Path, budget_h: float) -> None:
         ax.plot(group["cpu_hours"], group[ERROR_R], marker="o", markersize=2.5, label=method)
     ax.axvline(budget_h, color="grey", linestyle=":", linewidth=1)
     ax.set(xlabel="training CPU hours (one thread)", ylabel="validation Error(R) [deg], lower is better", yscale="log",
-           title="Every learned method on real airplanes (TS, PRNet manner, clean), one CPU budget")
+           title="Learned methods on real airplanes (TS, PRNet manner, clean)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
     fig.tight_layout()
