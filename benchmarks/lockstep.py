@@ -84,6 +84,11 @@ def copy_mapped(ours: nn.Module, theirs: nn.Module, pairs: Sequence[tuple[str, s
     return {theirs_key: ours_key for ours_key, theirs_key in used.items()}
 
 
+def cuda_on_cpu() -> None:
+    """``Tensor.cuda`` returning the tensor itself: the authors' ``.cuda()`` calls, on the CPU (this process only)."""
+    torch.Tensor.cuda = lambda self, *args, **kwargs: self
+
+
 @contextlib.contextmanager
 def float64_mode() -> Iterator[None]:
     """Tensors made in float64 and ``Tensor.float()`` keeping float64 (the authors' casts), for a check."""
@@ -170,8 +175,7 @@ def train(pair: Pair, datamodule, args: argparse.Namespace, check_same_start) ->
             schedulers[n].load_state_dict(state["schedulers"][n])
         step_count, cpu = state["step"], state["cpu_s"]
         torch.set_rng_state(state["rng"])
-        if "np_rng" in state:  # (state files of the OMNet harness before the split have none)
-            np.random.set_state(state["np_rng"])
+        np.random.set_state(state["np_rng"])
     else:
         numpy_state = np.random.get_state()
         with torch.random.fork_rng():  # the check's draws leave the training's random streams as they were

@@ -38,7 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from benchmarks.lockstep import Pair, as_double, copy_mapped, float64_mode, write_check
+from benchmarks.lockstep import Pair, as_double, copy_mapped, cuda_on_cpu, float64_mode, write_check
 from src.errors import ConfigError
 from src.models.base import MIN_CHANNELS, scaled
 
@@ -69,7 +69,7 @@ def load_authors(checkout: Path, width: float) -> types.SimpleNamespace:
     """The port's ``OMNet`` class and ``compute_loss`` on the CPU, its layers at ``width``."""
     if not (checkout / "model" / "net.py").is_file():
         raise ConfigError(f"--authors {checkout}: no model/net.py (a checkout of hxwork/OMNet_Pytorch is needed)")
-    torch.Tensor.cuda = lambda self, *args, **kwargs: self  # the port's .cuda() calls, on the CPU
+    cuda_on_cpu()
     if importlib.util.find_spec("pytorch3d") is None:  # common/so3.py's import, used by its metrics only (not called)
         sys.modules["pytorch3d"] = types.ModuleType("pytorch3d")
         sys.modules["pytorch3d"].transforms = None

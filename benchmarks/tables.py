@@ -39,6 +39,7 @@ import pandas as pd
 from baselines.methods import paper_rank
 from benchmarks.paper import (
     EXPERIMENT_LABELS,
+    PAPER_COUNTERPARTS,
     attach_paper,
     canonical_experiment,
     default_paper_dir,
@@ -50,8 +51,9 @@ from src.metrics import CHAMFER, ERROR_R, MAE_R, PAPER_METRICS, RMSE_R, SCORE, S
 HIGHER_IS_BETTER = SUCCESS_NAMES
 REQUIRED = ("method", "experiment", "sampling", "metric", "value")
 LAYOUTS = ("table1", "table2", "table3")
-EXPERIMENT_ORDER = ("unseen_shapes", "real_airplane", "unseen_categories", "real_unseen_category",
-                    "unseen_shapes_noise", "real_airplane_noisy", "unseen_categories_noise")
+#: The paper's experiments in its order, each followed by our real-data experiments that stand in for it.
+EXPERIMENT_ORDER = tuple(e for paper in ("unseen_shapes", "unseen_categories", "unseen_shapes_noise", "unseen_categories_noise")
+                         for e in (paper, *(ours for ours, cell in PAPER_COUNTERPARTS.items() if cell == paper)))
 ABLATION_ORDER = ("B", "B+M", "B+M+ML", "B+M+ML+F", "B+M+ML+F+C")
 MISSING = "--"
 
