@@ -199,6 +199,9 @@ def train(pair: Pair, datamodule, args: argparse.Namespace, check_same_start) ->
             cpu[n] += time.process_time() - start
             running[n].append(loss.item())
         step_count += 1
+        if step_count % args.progress_every == 0:  # a sign of life between validations
+            print(f"step {step_count}/{args.steps}: train loss " + ", ".join(
+                f"{n} {running[n][-1]:.4f} ({cpu[n]:.0f} CPU-s)" for n in pair.nets), flush=True)
         if step_count % args.val_every == 0 or step_count == args.steps:
             with curves.open("a", newline="") as f:
                 for n in pair.nets:
@@ -264,6 +267,7 @@ def parser_for(method: types.ModuleType, prog: str, with_method: bool) -> argpar
     parser.add_argument("--schedule-steps", type=int, default=None,
                         help="the run whose schedule the milestones follow (default --steps): train its first --steps")
     parser.add_argument("--val-every", type=int, default=d["val_every"])
+    parser.add_argument("--progress-every", type=int, default=10, help="print the losses every N steps")
     parser.add_argument("--val-pairs", type=int, default=None, help="validate on the first N pairs only (default all)")
     parser.add_argument("--seed", type=int, default=1234, help="default: conf/config.yaml's, as src.train")
     parser.add_argument("--plot", type=Path, default=None, help="only draw --out's curves.csv into this PNG")

@@ -74,7 +74,7 @@ def _toy_run(out: Path, steps: int) -> tuple[list, dict]:
     torch.manual_seed(0)
     pair = _ToyPair(nn.Linear(3, 3), nn.Linear(3, 3))
     args = argparse.Namespace(out=out, steps=steps, schedule_steps=6, milestones=[0.5], lr=0.01, weight_decay=1e-3,
-                              val_every=2, val_pairs=7)
+                              val_every=2, val_pairs=7, progress_every=3)
     lockstep.train(pair, _DataModule(), args, lambda pair, batch, out: None)
     rows = [(r["step"], r["net"], r["train_loss"], r["val_rot_deg"], r["val_trans"]) for r in csv.DictReader((out / "curves.csv").open())]
     return rows, {n: {k: v.clone() for k, v in m.state_dict().items()} for n, m in pair.nets.items()}
@@ -87,6 +87,13 @@ def test_the_shared_loop_resumes_where_it_left_off(tmp_path):
     assert resumed == straight and [r[0] for r in straight] == ["2", "2", "4", "4", "6", "6"]
     for n in nets:
         assert all(torch.equal(nets[n][k], nets_resumed[n][k]) for k in nets[n])
+
+
+def test_the_loop_prints_both_losses_between_validations(tmp_path, capsys):
+    _toy_run(tmp_path, 6)
+    progress = [line for line in capsys.readouterr().out.splitlines() if "train loss" in line]
+    assert [line.split(":")[0] for line in progress] == ["step 3/6", "step 6/6"]
+    assert all("ours " in line and "authors " in line and "CPU-s" in line for line in progress)
 
 
 def test_authors_without_model_py_and_other_widths_are_config_errors(tmp_path, capsys):
