@@ -53,22 +53,27 @@ def cell_metrics(
     return metric.compute(), {k: np.asarray(v) for k, v in per_pair.items()}
 
 
+def register(registrator: Any, pairs: Sequence[tuple[np.ndarray, np.ndarray]], workers: int | None = None,
+             timeout_s: float | None = None, progress: bool = True) -> list[RegistrationResult]:
+    """One result per ``(src, ref)`` pair: a learned registrator's in batches (:func:`run_batches`), a classical
+    one's in worker processes (:func:`run_pairs`)."""
+    if getattr(registrator, "needs_training", False):
+        from baselines.learned.adapter import run_batches
+
+        return run_batches(registrator, pairs, progress=progress)
+    return run_pairs(registrator, pairs, workers=workers, timeout_s=timeout_s, progress=progress)
+
+
 def register_cells(cells: Sequence[Cell], cfg: DictConfig) -> list[tuple[list[RegistrationResult], float]]:
     """Register the pairs of ``cells`` (all of one registrator): one result list per cell and the
     wall time of the call. A classical method's cells go through one :func:`run_pairs` call (one set
     of worker processes for all of them); a learned method's through :func:`run_batches`."""
-    registrator = cells[0].registrator
     clouds = [[(src, ref) for src, ref, _ in cell.test_set.pairs(cell.n_pairs)] for cell in cells]
     flat = [pair for cell_clouds in clouds for pair in cell_clouds]
     start = time.perf_counter()
-    if getattr(registrator, "needs_training", False):
-        from baselines.learned.adapter import run_batches
-
-        results = run_batches(registrator, flat, progress=bool(cfg.progress))
-    else:
-        workers = cfg.get("workers")
-        results = run_pairs(registrator, flat, workers=None if workers is None else int(workers),
-                            timeout_s=cfg.get("timeout_s"), progress=bool(cfg.progress))
+    workers = cfg.get("workers")
+    results = register(cells[0].registrator, flat, None if workers is None else int(workers), cfg.get("timeout_s"),
+                       bool(cfg.progress))
     wall = time.perf_counter() - start
     out, offset = [], 0
     for cell_clouds in clouds:

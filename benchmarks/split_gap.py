@@ -1,0 +1,110 @@
+"""Are an experiment's validation and test pairs equally hard? Each method's mean Error(R) and Error(t) on both
+splits, with bootstrap 95 % intervals of the mean (pairs resampled), so that a gap between a model's validation and
+test numbers can be told apart from a difference between the sets or from the spread of a 100-pair mean.
+
+    python -m benchmarks.split_gap --exp real_airplane --methods identity,icp,fgr
+    python -m benchmarks.split_gap --exp real_airplane --methods icp,idam --checkpoint idam=PATH.ckpt --out GAP.md
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from baselines.registry import resolve_registrator
+from benchmarks.grid_run import cell_metrics, register
+from src.config import euler_seq_for
+from src.errors import ConfigError, exit_code_of
+from src.metrics import ERROR_R, ERROR_T
+
+SPLITS = ("val", "test")
+
+
+def split_pairs(experiment: str, sampling: str, partial: str, overrides: Sequence[str] = ()) -> dict[str, list]:
+    """The fixed validation and test pairs ``(src, ref, transform_gt)`` of an experiment, as training and
+    ``src.eval`` see them."""
+    import hydra
+
+    from src.compose import compose_experiment
+    from src.pair_sets import TestSet
+
+    cfg = compose_experiment([f"+exp={experiment}", f"sampling={sampling}", f"partial={partial}", *overrides])
+    datamodule = hydra.utils.instantiate(cfg.data)
+    datamodule.setup("fit")
+    datamodule.setup("test")
+    missing = [s for s in SPLITS if s not in datamodule.datasets]
+    if missing:
+        raise ConfigError(f"experiment {experiment} has no {' or '.join(missing)} split (data.splits)")
+    out = {}
+    for split in SPLITS:
+        pair_set = TestSet(experiment, sampling, partial, cfg, datamodule.datasets[split], {})
+        out[split] = pair_set.pairs(len(pair_set.dataset))
+    return out
+
+
+def bootstrap_mean(values: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """The 2.5 % and 97.5 % quantiles of the mean of ``values`` resampled with replacement."""
+    rng = np.random.default_rng(seed)
+    means = values[rng.integers(0, len(values), size=(draws, len(values)))].mean(axis=1)
+    low, high = np.quantile(means, [0.025, 0.975])
+    return float(low), float(high)
+
+
+def gap_table(methods: Sequence[str], pairs: dict[str, list], partial: str,
+              checkpoints: dict[str, str] | None = None, workers: int | None = 1) -> list[dict]:
+    """One row per method and split: pairs, mean, median and 95 % interval of Error(R) and Error(t)."""
+    rows = []
+    for method in methods:
+        options = {"checkpoint": checkpoints[method]} if checkpoints and method in checkpoints else {}
+        registrator = resolve_registrator(method)(None, **options)
+        for split, split_pairs_ in pairs.items():
+            results = register(registrator, [(s, r) for s, r, _ in split_pairs_], workers=workers, progress=False)
+            _, errors = cell_metrics(results, split_pairs_, euler_seq_for(partial))
+            row = {"method": method, "split": split, "pairs": len(split_pairs_)}
+            for name in (ERROR_R, ERROR_T):
+                low, high = bootstrap_mean(errors[name])
+                digits = 1 if name == ERROR_R else 3
+                row |= {name: float(errors[name].mean()), f"{name} median": float(np.median(errors[name])),
+                        f"{name} 95%": f"{low:.{digits}f}–{high:.{digits}f}"}
+            rows.append(row)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--exp", default="real_airplane", help="an experiment with a val and a test split")
+    parser.add_argument("--methods", default="identity,icp", help="comma-separated method names")
+    parser.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=PATH",
+                        help="a learned method's checkpoint (repeatable)")
+    parser.add_argument("--sampling", choices=("os", "ts"), default="ts")
+    parser.add_argument("--partial", choices=("prnet", "rpmnet"), default="prnet")
+    parser.add_argument("--override", action="append", default=[], help="a Hydra override of the experiment")
+    parser.add_argument("--workers", type=int, default=1, help="a classical method's worker processes (0: in this one)")
+    parser.add_argument("--out", type=Path, default=None, help="also write the table here (Markdown)")
+    args = parser.parse_args(argv)
+
+    def action() -> None:
+        import pandas as pd
+
+        checkpoints = {}
+        for item in args.checkpoint:
+            method, sep, path = item.partition("=")
+            if not sep:
+                raise ConfigError(f"--checkpoint expects METHOD=PATH, got '{item}'")
+            checkpoints[method] = path
+        methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+        pairs = split_pairs(args.exp, args.sampling, args.partial, args.override)
+        table = pd.DataFrame(gap_table(methods, pairs, args.partial, checkpoints, args.workers)).to_markdown(index=False,
+                                                                                                floatfmt=".3f")
+        print(table)
+        if args.out:
+            args.out.write_text(f"`python -m benchmarks.split_gap {' '.join(argv or [])}`\n\n{table}\n")
+
+    return exit_code_of(action)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
