@@ -2,6 +2,7 @@
 
     python -m src.eval +exp=unseen_categories data=synthetic   # the shipped checkpoint for it (checkpoints/*.json)
     python -m src.eval +exp=unseen_categories ckpt_path=outputs/.../checkpoints/best-*.ckpt
+    python -m src.eval +exp=real_airplane ckpt_path=checkpoints/rpmnet_real_airplane_ts_prnet.ckpt   # model= from the file
     python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
     python -m src.eval model=dcp +exp=dcp_protocol data=modelnet40 weights=official:dcp_v1   # published weights
 
@@ -14,16 +15,20 @@ entry; the metric convention from the experiment).
 from __future__ import annotations
 
 import logging
+import sys
+from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig
+import lightning as L
+from omegaconf import DictConfig, OmegaConf
 
-from src.checkpoint_io import check_checkpoint
+from src.checkpoint_io import check_checkpoint, read_checkpoint
 from src.config import register_resolvers
-from src.errors import ConfigError
+from src.errors import CheckpointError, ConfigError
 from src.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
+from src.paths import CONF_DIR
 from src.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.reporting import report_test_metrics, save_resolved_config
 from src.evaluated import evaluated_record
@@ -72,6 +77,7 @@ def load_module(cfg: DictConfig) -> tuple[RegistrationModule, str]:
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     refuse_unread_overrides(cfg)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)  # a network that samples at test (PRNet) repeats
     module, ckpt_path = load_module(cfg)
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
@@ -82,7 +88,30 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-main = job_main(evaluate)
+def model_of_checkpoint(overrides: list[str], model_dir: Path = CONF_DIR / "model") -> list[str]:
+    """``overrides`` with ``model=<name>`` added when ``ckpt_path=`` names a readable checkpoint and no
+    ``model=`` is given: the model config (``conf/model/<name>.yaml``) whose network the checkpoint holds, so
+    that ``src.eval +exp=E ckpt_path=checkpoints/<method>_....ckpt`` evaluates any method's checkpoint. Anything
+    else (no checkpoint, unreadable, no single matching config) is left to :func:`load_checkpoint`'s one-line check."""
+    paths = [o.split("=", 1)[1] for o in overrides if o.startswith("ckpt_path=")]
+    if len(paths) != 1 or any(o.lstrip("+~").startswith("model=") for o in overrides):
+        return overrides
+    try:
+        target = read_checkpoint(paths[0])["hyper_parameters"]["network"]["_target_"]
+    except CheckpointError:
+        return overrides
+    names = [f.stem for f in sorted(model_dir.glob("*.yaml"))
+             if OmegaConf.select(OmegaConf.load(f), "network._target_") == target]
+    return [*overrides, f"model={names[0]}"] if len(names) == 1 else overrides
+
+
+_main = job_main(evaluate)
+
+
+def main() -> None:
+    sys.argv[1:] = model_of_checkpoint(sys.argv[1:])
+    _main()
+
 
 if __name__ == "__main__":
     main()

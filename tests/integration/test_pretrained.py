@@ -105,3 +105,30 @@ def test_shipped_resolver_names_a_checkpoint_wherever_the_command_runs(tmp_path,
     register_resolvers()
     monkeypatch.chdir(tmp_path)
     assert OmegaConf.create({"c": "${shipped:dcp_real_airplane_ts_prnet}"}).c == str(SHIPPED_DIR / "dcp_real_airplane_ts_prnet.ckpt")
+
+
+@pytest.mark.parametrize("shipped", sorted(SHIPPED_DIR.glob("*.ckpt")), ids=lambda p: p.stem)
+def test_eval_finds_the_model_of_every_shipped_checkpoint(shipped):
+    """`src.eval +exp=E ckpt_path=checkpoints/<method>_....ckpt` needs no model=: the checkpoint's network names it."""
+    from omegaconf import OmegaConf
+
+    from src.eval import model_of_checkpoint
+    from src.paths import CONF_DIR
+
+    args = ["+exp=real_airplane", f"ckpt_path={shipped}"]
+    added = model_of_checkpoint(args)
+    assert added[:2] == args and len(added) == 3 and added[2].startswith("model=")
+    model = OmegaConf.load(CONF_DIR / "model" / f"{added[2].removeprefix('model=')}.yaml")
+    card = json.loads(shipped.with_suffix(".json").read_text())
+    assert model.network._target_ == card["network"]["_target_"]
+    assert model_of_checkpoint([*args, "model=omnet"]) == [*args, "model=omnet"]  # the user's choice stands
+    missing = ["+exp=real_airplane", "ckpt_path=no/such.ckpt"]
+    assert model_of_checkpoint(missing) == missing  # left to load_checkpoint's one-line error
+
+
+def test_eval_of_a_network_that_samples_at_test_repeats(tmp_path):
+    """PRNet draws its keypoints at test (Gumbel-softmax, as the official test loop): src.eval seeds them."""
+    shipped = SHIPPED_DIR / "prnet_real_airplane_ts_prnet.ckpt"
+    first, second = (evaluate(tiny_config(tmp_path / run, "+exp=unseen_shapes", "model=prnet", f"ckpt_path={shipped}"))
+                     for run in ("first", "second"))
+    assert first == second and first["Error(R)"] > 0
