@@ -105,13 +105,8 @@ def model_of_checkpoint(overrides: list[str], model_dir: Path = CONF_DIR / "mode
     return [*overrides, f"model={names[0]}"] if len(names) == 1 else overrides
 
 
-_main = job_main(evaluate)
-
-
-def main() -> None:
-    sys.argv[1:] = model_of_checkpoint(sys.argv[1:])
-    _main()
-
+main = job_main(evaluate)
 
 if __name__ == "__main__":
+    sys.argv[1:] = model_of_checkpoint(sys.argv[1:])
     main()
