@@ -68,7 +68,7 @@ def test_default_grid_and_real_airplane_compose():
         assert list(real.benchmark.partials) == ["prnet"] and list(real.benchmark.samplings) == ["os", "ts"]
         assert real.data.dataset == "modelnet40_resampled" and real.output_dir == "outputs/grid/real_airplane"
         learned = [m for m in real.benchmark.methods if real.method_options[m].get("checkpoint")]
-        assert {"omnet", "rpmnet", "fmr", "deepgmr", "prnet"} <= set(learned)  # the shipped checkpoints, each a file of the repository
+        assert {"omnet", "dcp", "rpmnet", "fmr", "deepgmr", "prnet"} <= set(learned)  # the shipped checkpoints, each a file of the repository
         assert all(Path(real.method_options[m].checkpoint).is_file() for m in learned)
 
 
