@@ -46,6 +46,12 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return checkpoint
 
 
+def read_checkpoint_network(path: str | Path) -> str:
+    """The ``_target_`` of the network stored in a ``src.train`` checkpoint (CheckpointError as
+    :func:`read_checkpoint`)."""
+    return str(read_checkpoint(path)["hyper_parameters"]["network"]["_target_"])
+
+
 def check_checkpoint(path: str | Path, expected_target: str, resume: bool = False,
                      model: DictConfig | None = None) -> dict[str, Any]:
     """The checkpoint's hyper-parameters, after :func:`read_checkpoint` and checking it holds an

@@ -22,7 +22,7 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from src.checkpoint_io import check_checkpoint, read_checkpoint
+from src.checkpoint_io import check_checkpoint, read_checkpoint_network
 from src.config import register_resolvers
 from src.errors import CheckpointError, ConfigError
 from src.failures import job_main
@@ -97,7 +97,7 @@ def model_of_checkpoint(overrides: list[str], model_dir: Path = CONF_DIR / "mode
     if len(paths) != 1 or any(o.lstrip("+~").startswith("model=") for o in overrides):
         return overrides
     try:
-        target = read_checkpoint(paths[0])["hyper_parameters"]["network"]["_target_"]
+        target = read_checkpoint_network(paths[0])
     except CheckpointError:
         return overrides
     names = [f.stem for f in sorted(model_dir.glob("*.yaml"))

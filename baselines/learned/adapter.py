@@ -46,7 +46,7 @@ from src.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
 from src.paths import SHIPPED_DIR
 
-__all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "read_checkpoint_network", "run_batches"]
+__all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "run_batches"]
 
 #: method key -> ``_target_`` of its network, derived from :data:`baselines.methods.METHODS` (for benchmarks.speed).
 LEARNED_METHODS: dict[str, str] = {method.key: method.network for method in learned_methods()}
@@ -91,14 +91,6 @@ class LearnedConfig(RegistratorConfig):
         if self.weights is not None:
             self.weights = str(self.weights)
         self.model_overrides = tuple(str(o) for o in (self.model_overrides or ()))
-
-
-def read_checkpoint_network(path: str | Path) -> str:
-    """The ``_target_`` of the network stored in a ``src.train`` checkpoint (CheckpointError if
-    the file is missing, unreadable or was not written by ``src.train``)."""
-    from src.checkpoint_io import read_checkpoint  # here, not at module level: keeps `import baselines` light
-
-    return str(read_checkpoint(path)["hyper_parameters"]["network"]["_target_"])
 
 
 def shipped_checkpoint(method: str, target: str, directory: Path | None = None) -> Path:
@@ -155,6 +147,8 @@ class LearnedRegistrator(Registrator):
             cfg.checkpoint = str(shipped_checkpoint(self.name, self.network_target))
             self.shipped = Path(cfg.checkpoint).stem
             log.info("%s: no checkpoint given, using the shipped %s", self.name, cfg.checkpoint)
+        from src.checkpoint_io import read_checkpoint_network  # here: keeps `import baselines` light
+
         found = read_checkpoint_network(cfg.checkpoint)
         if found != self.network_target:
             raise CheckpointError(
