@@ -69,6 +69,8 @@ class LearnedConfig(RegistratorConfig):
             (timing only; no checkpoint).
         model_scale: channel-width multiplier for ``fresh_weights`` (1.0 = the paper's network).
         model_overrides: extra Hydra overrides for ``fresh_weights`` (e.g. ``model.network.num_iters=2``).
+        seed: seeds the random draws of a network that samples at test (PRNet's Gumbel noise) afresh for each
+            forward pass, so a batch's estimates do not depend on what ran before it; the global RNG is left as it was.
     """
 
     checkpoint: str | None = None
@@ -78,6 +80,7 @@ class LearnedConfig(RegistratorConfig):
     fresh_weights: bool = False
     model_scale: float = 1.0
     model_overrides: Sequence[str] = field(default_factory=tuple)
+    seed: int = 0
 
     def __post_init__(self) -> None:
         if self.device not in DEVICES:
@@ -224,6 +227,11 @@ class LearnedRegistrator(Registrator):
         self.setup()
         return self._module
 
+    @property
+    def samples_at_test(self) -> bool:
+        """Whether the network's estimates are random draws (then ``seed`` defines them; see LearnedConfig)."""
+        return bool(getattr(self.module.network, "samples_at_test", False))
+
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         state["_module"] = None  # reloaded lazily in the receiving process
@@ -236,7 +244,8 @@ class LearnedRegistrator(Registrator):
         import torch
 
         module = self.module
-        with torch.inference_mode():
+        with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []), torch.inference_mode():
+            torch.manual_seed(self.config.seed)
             points_src = torch.as_tensor(src, dtype=torch.float32, device=self.device)
             points_ref = torch.as_tensor(ref, dtype=torch.float32, device=self.device)
             transforms = module(points_src, points_ref)

@@ -87,6 +87,11 @@ class PRNet(nn.Module):
         self.pointer = AttentionPointer(emb, n_blocks, n_heads, scaled(ff_dims, width), dropout, negative_slope=0.2)
         self.temperature_net = MLP([emb, hidden, hidden, hidden, 1], last_activation=False, bias=True)
 
+    @property
+    def samples_at_test(self) -> bool:
+        """Whether its estimates at test are random draws (the Gumbel noise of the official test loop)."""
+        return self.sampler == "gumbel_softmax" and not self.deterministic_eval
+
     def keypoints(self, points: Tensor, feat: Tensor) -> tuple[Tensor, Tensor]:
         """The ``num_keypoints`` points (and features) with the largest feature norms."""
         if feat.shape[1] <= self.num_keypoints:

@@ -140,3 +140,38 @@ def test_learned_method_in_the_grid(omnet_ckpt, tmp_path):
     assert set(tidy["method"]) == {"OMNet"} and set(tidy["partial"]) == {"prnet"} and (tidy["n_pairs"] == 3).all()
     definition = result.cells[0]["definition"]["method"]["config"]
     assert len(definition["checkpoint_sha256"]) == 64
+
+
+
+def _tiny_prnet(*overrides: str, **options) -> LearnedRegistrator:
+    return get_registrator("prnet", fresh_weights=True, model_scale=0.0625, device="cpu", model_overrides=[
+        "model.network.num_iters=1", "model.network.num_keypoints=16", *overrides], **options)
+
+
+def test_a_network_that_samples_at_test_repeats_whatever_ran_before():
+    """PRNet's Gumbel draws are seeded per forward pass: the same batch gives the same estimates after any other
+    use of the RNG, the caller's RNG is left as it was, and the seed is what the draws depend on."""
+    src = np.stack([l_shape_surface(64, seed) for seed in range(3)])
+    ref = src[:, ::-1].copy()
+    registrator = _tiny_prnet()
+    assert registrator.samples_at_test
+    torch.manual_seed(1)
+    before = torch.random.get_rng_state()
+    first = registrator.register_batch(src, ref)
+    assert torch.equal(torch.random.get_rng_state(), before)
+    torch.rand(100)
+    assert np.array_equal(first, registrator.register_batch(src, ref))
+    other_seed = _tiny_prnet(seed=1)
+    other_seed._module = registrator.module  # the same weights, other draws
+    assert not np.array_equal(first, other_seed.register_batch(src, ref))
+
+
+def test_the_seed_defines_a_grid_cell_only_for_a_network_that_samples(omnet_ckpt):
+    from omegaconf import OmegaConf
+
+    from benchmarks.grid_plan import MethodFactory
+
+    factory = MethodFactory(OmegaConf.create({}))
+    assert factory.identity(_tiny_prnet())["config"]["seed"] == 0
+    assert "seed" not in factory.identity(get_registrator("omnet", checkpoint=str(omnet_ckpt)))["config"]
+    assert not _tiny_prnet("model.network.deterministic_eval=true").samples_at_test
