@@ -5,9 +5,10 @@ same order, each with its own Adam and the same step schedule; before training, 
 the first batch shows what of the two forward passes is the same function. Every ``--val-every``
 steps both are evaluated (eval mode) on the experiment's validation pairs. The per-method part (the
 authors' code loaded from a checkout outside the repository, the weight mapping, the two forward
-calls, the start check) is an adapter module: ``benchmarks.omnet_lockstep``, ``benchmarks.idam_lockstep``.
+calls, the start check) is an adapter module: ``benchmarks.omnet_lockstep``, ``benchmarks.idam_lockstep``,
+``benchmarks.prnet_lockstep``.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.lockstep --method omnet|idam --authors CHECKOUT --out RUN [--steps N]
+    OMP_NUM_THREADS=1 python -m benchmarks.lockstep --method omnet|idam|prnet --authors CHECKOUT --out RUN [--steps N]
 
 Resumable (``state.pt`` every ``--val-every`` steps); ``curves.csv``, ``start_check.json``; ``--plot PNG``.
 """
@@ -31,7 +32,7 @@ from torch import Tensor, nn
 
 from src.errors import ConfigError, exit_code_of
 
-METHODS = ("omnet", "idam")
+METHODS = ("omnet", "idam", "prnet")
 #: What the protocol of every adapter adds: single-process data, validation in batches of 50.
 DATA = ["data.num_workers=0", "data.persistent_workers=false", "data.pin_memory=false", "data.eval_batch_size=50"]
 
