@@ -98,9 +98,10 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
     full = torch.load(source, map_location="cpu", weights_only=False)
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.ckpt"
-    torch.save({"state_dict": _stored(full["state_dict"], half), "hyper_parameters": full["hyper_parameters"],
+    hyper_parameters = json.loads(_portable(json.dumps(full["hyper_parameters"]), run_dir))  # e.g. feature_init
+    torch.save({"state_dict": _stored(full["state_dict"], half), "hyper_parameters": hyper_parameters,
                 "pytorch-lightning_version": full["pytorch-lightning_version"]}, target)
-    network = full["hyper_parameters"]["network"]
+    network = hyper_parameters["network"]
     card: dict[str, Any] = {
         "name": name,
         "file": target.name,
@@ -118,7 +119,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
             "fit_seconds_last_session": results.get("fit_seconds"),
             "resumed_from": results.get("resumed_from"),
             "batch_size": config["data"]["batch_size"],
-            "optimizer": {k: full["hyper_parameters"][k] for k in ("lr", "weight_decay", "scheduler")},
+            "optimizer": {k: hyper_parameters[k] for k in ("lr", "weight_decay", "scheduler")},
             "precision": config["trainer"]["precision"],
             "accelerator": config["trainer"]["accelerator"],
             "seed": config["seed"],
@@ -134,9 +135,15 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
 
 def _portable(text: str, run_dir: Path) -> str:
     """``text`` with the run directory's absolute path (resumed_from, ckpt_path in the command) written as
-    ``<run dir>``: a card names no path of the machine it was exported on."""
-    for prefix in sorted({str(run_dir.resolve()), str(run_dir.absolute())}, key=len, reverse=True):
+    ``<run dir>``, and its parent's (a sibling stage's checkpoint, e.g. PointNetLK's classifier) as ``<run dir>/..``:
+    a card names no path of the machine it was exported on."""
+    def spellings(folder: Path) -> list[str]:
+        return sorted({str(folder.resolve()), str(folder.absolute())}, key=len, reverse=True)
+
+    for prefix in spellings(run_dir):
         text = text.replace(prefix, "<run dir>")
+    for prefix in spellings(run_dir.parent):  # what is left of it: a sibling's path
+        text = text.replace(prefix + "/", "<run dir>/../")
     return text
 
 

@@ -64,6 +64,11 @@ def test_the_card_names_no_path_of_this_machine(run_dir, tmp_path):
     export(copy, "tiny", tmp_path / "out")
     text = (tmp_path / "out" / "tiny.json").read_text()
     assert str(tmp_path) not in text and json.loads(text)["training"]["resumed_from"] == "<run dir>/checkpoints/last.ckpt"
+    sibling = str(tmp_path / "classifier" / "checkpoints" / "best-3.ckpt")  # an earlier stage's checkpoint
+    (copy / "metrics.json").write_text(json.dumps(results | {"resumed_from": sibling}))
+    export(copy, "tiny", tmp_path / "out")
+    card = json.loads((tmp_path / "out" / "tiny.json").read_text())
+    assert card["training"]["resumed_from"] == "<run dir>/../classifier/checkpoints/best-3.ckpt"
 
 
 def test_find_shipped_matches_the_experiment(run_dir, tmp_path):
@@ -132,3 +137,10 @@ def test_eval_of_a_network_that_samples_at_test_repeats(tmp_path):
     first, second = (evaluate(tiny_config(tmp_path / run, "+exp=unseen_shapes", "model=prnet", f"ckpt_path={shipped}"))
                      for run in ("first", "second"))
     assert first == second and first["Error(R)"] > 0
+
+
+@pytest.mark.parametrize("path", sorted(SHIPPED_DIR.glob("*.*")), ids=lambda p: p.name)
+def test_no_shipped_file_names_a_path_of_the_machine_it_was_made_on(path):
+    """A card or checkpoint holds no absolute path above the repository (a training stage's checkpoint in the
+    network's hyper-parameters, as PointNetLK's feature_init was, must be written relative to the run)."""
+    assert (str(SHIPPED_DIR.resolve().parent.parent) + "/").encode() not in path.read_bytes()

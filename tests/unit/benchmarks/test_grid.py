@@ -19,6 +19,7 @@ from benchmarks.tables import build_table, fmt
 from src.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
 from src.metrics import METRIC_NAMES, RegistrationMetrics
 from src.pair_sets import TestSet
+from src.paths import SHIPPED_DIR
 from tests.helpers.markdown import markdown_table
 from tests.helpers.paths import CONF as CONF_DIR
 
@@ -68,7 +69,8 @@ def test_default_grid_and_real_airplane_compose():
         assert list(real.benchmark.partials) == ["prnet"] and list(real.benchmark.samplings) == ["os", "ts"]
         assert real.data.dataset == "modelnet40_resampled" and real.output_dir == "outputs/grid/real_airplane"
         learned = [m for m in real.benchmark.methods if real.method_options[m].get("checkpoint")]
-        assert {"omnet", "dcp", "rpmnet", "fmr", "deepgmr", "prnet"} <= set(learned)  # the shipped checkpoints, each a file of the repository
+        shipped = {path.name.removesuffix("_real_airplane_ts_prnet.json") for path in SHIPPED_DIR.glob("*_real_airplane_ts_prnet.json")}
+        assert {"omnet", "dcp", "rpmnet", "fmr", "deepgmr", "prnet", "pointnetlk"} <= shipped == set(learned)  # each a file of the repository
         assert all(Path(real.method_options[m].checkpoint).is_file() for m in learned)
 
 
