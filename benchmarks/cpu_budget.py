@@ -293,7 +293,8 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
             for name in RECORD_FILES:
                 if (run_dir / name).is_file():
                     copy_dir.mkdir(parents=True, exist_ok=True)
-                    shutil.copy2(run_dir / name, copy_dir / name)
+                    text = (run_dir / name).read_text()  # the repository names no path of this machine
+                    (copy_dir / name).write_text(text.replace(str(root.resolve()), "RUNS").replace(str(root), "RUNS"))
         archived.append(method)
     if not archived:
         raise ConfigError(f"no method run under {root}: nothing to archive")

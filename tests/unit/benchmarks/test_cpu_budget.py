@@ -145,10 +145,11 @@ def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp
     assert all(p.is_file() and p.stat().st_size > 0 for p in report(tmp_path, tmp_path / "out"))
     (tmp_path / "dcp" / "dcp" / "checkpoints").mkdir()
     (tmp_path / "dcp" / "dcp" / "checkpoints" / "last.ckpt").write_bytes(b"weights")
-    (tmp_path / "dcp" / "dcp" / "command.txt").write_text("-m src.train model=dcp\n")
+    (tmp_path / "dcp" / "dcp" / "command.txt").write_text(f"-m src.train model=dcp hydra.run.dir={tmp_path}/dcp/dcp\n")
     archive = tmp_path / "archive"
     assert cpu_budget.archive_runs(tmp_path, archive) == ["dcp", "pointnetlk"]
-    assert not list(archive.rglob("*.ckpt")) and (archive / "dcp" / "dcp" / "command.txt").is_file()
+    assert not list(archive.rglob("*.ckpt"))
+    assert (archive / "dcp" / "dcp" / "command.txt").read_text() == "-m src.train model=dcp hydra.run.dir=RUNS/dcp/dcp\n"
     archived_curves, archived_table = collect(archive)  # the report from the committed copy: the same numbers
     pd.testing.assert_frame_equal(archived_curves, curves)
     pd.testing.assert_frame_equal(archived_table, table.reset_index())
