@@ -160,7 +160,7 @@ class MethodFactory:
         config = registrator.config.to_dict()
         for key in ("device", "batch_size"):  # same results, different speed
             config.pop(key, None)
-        if not getattr(registrator, "samples_at_test", False):  # a deterministic network: the seed draws nothing
+        if getattr(registrator, "samples_at_test", None) is False:  # a deterministic network: its seed draws nothing
             config.pop("seed", None)
         if config.get("weights"):
             from baselines.learned.published import weights_sha256  # torch: not in the grid's worker start-up

@@ -175,3 +175,4 @@ def test_the_seed_defines_a_grid_cell_only_for_a_network_that_samples(omnet_ckpt
     assert factory.identity(_tiny_prnet())["config"]["seed"] == 0
     assert "seed" not in factory.identity(get_registrator("omnet", checkpoint=str(omnet_ckpt)))["config"]
     assert not _tiny_prnet("model.network.deterministic_eval=true").samples_at_test
+    assert factory.identity(get_registrator("fgr"))["config"]["seed"] == 0  # a classical method's seed stays
