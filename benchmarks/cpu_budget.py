@@ -271,6 +271,11 @@ def run_folders(root: Path) -> list[str]:
     return [name for m in METHODS for name in (m, m + BEYOND) if (root / name / "plan.json").is_file()]
 
 
+def _copy_record(source: Path, target: Path, root: Path) -> None:
+    """A text record copied with ``root`` written as ``RUNS``: the repository names no path of this machine."""
+    target.write_text(source.read_text().replace(str(root.resolve()), "RUNS").replace(str(root), "RUNS"))
+
+
 def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) -> list[str]:
     """Copy the record of each run folder (``methods``, by default all: :func:`run_folders`) under ``root`` into
     ``out`` (replacing its older copy)."""
@@ -284,7 +289,7 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
         if target.exists():
             shutil.rmtree(target)
         target.mkdir(parents=True)
-        shutil.copy2(plan, target / "plan.json")
+        _copy_record(plan, target / "plan.json", root)
         for stage in json.loads(plan.read_text())["stages"]:
             run_dir, copy_dir = root / method / stage["name"], target / stage["name"]
             for log in run_dir.glob("csv/version_*/metrics.csv"):
@@ -293,8 +298,7 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
             for name in RECORD_FILES:
                 if (run_dir / name).is_file():
                     copy_dir.mkdir(parents=True, exist_ok=True)
-                    text = (run_dir / name).read_text()  # the repository names no path of this machine
-                    (copy_dir / name).write_text(text.replace(str(root.resolve()), "RUNS").replace(str(root), "RUNS"))
+                    _copy_record(run_dir / name, copy_dir / name, root)
         archived.append(method)
     if not archived:
         raise ConfigError(f"no method run under {root}: nothing to archive")
