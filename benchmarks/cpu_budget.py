@@ -37,6 +37,7 @@ from collections.abc import Callable, Sequence
 
 from benchmarks.cpu_recipes import CPU_TRAINING_ENV, add_run_parser, code_version, run_each, train_logged
 from src.errors import ConfigError, exit_code_of
+from src.paths import without_folder
 
 #: The learned methods of the grid, in the grid's order.
 METHODS = ("omnet", "dcp", "prnet", "rpmnet", "idam", "pointnetlk", "pointnetlk_revisited", "fmr", "deepgmr")
@@ -273,7 +274,7 @@ def run_folders(root: Path) -> list[str]:
 
 def _copy_record(source: Path, target: Path, root: Path) -> None:
     """A text record copied with ``root`` written as ``RUNS``: the repository names no path of this machine."""
-    target.write_text(source.read_text().replace(str(root.resolve()), "RUNS").replace(str(root), "RUNS"))
+    target.write_text(without_folder(source.read_text(), root, "RUNS"))
 
 
 def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) -> list[str]:

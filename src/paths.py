@@ -7,6 +7,7 @@ the repository root, on every machine and in CI; ``$OMNET_SHARED_DIR`` points el
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -30,3 +31,12 @@ def shared_dir() -> Path:
 def shared_path(*parts: str) -> Path:
     """A path inside the shared folder, e.g. ``shared_path("data", "stanford")``."""
     return shared_dir().joinpath(*parts)
+
+
+def without_folder(text: str, folder: Path, placeholder: str) -> str:
+    """``text`` with ``folder``'s absolute path (resolved or not, longest first; the whole folder name, not the
+    start of a longer one) written as ``placeholder``: a record committed to the repository names no path of the
+    machine it was made on."""
+    for spelling in sorted({str(folder.resolve()), str(folder.absolute())}, key=len, reverse=True):
+        text = re.sub(re.escape(spelling) + r"(?![\w.-])", lambda _: placeholder, text)
+    return text

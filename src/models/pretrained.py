@@ -23,7 +23,7 @@ import yaml
 
 from src.errors import CheckpointError
 from src.models.module import RegistrationModule
-from src.paths import SHIPPED_DIR
+from src.paths import SHIPPED_DIR, without_folder
 from src.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
@@ -137,14 +137,8 @@ def _portable(text: str, run_dir: Path) -> str:
     """``text`` with the run directory's absolute path (resumed_from, ckpt_path in the command) written as
     ``<run dir>``, and its parent's (a sibling stage's checkpoint, e.g. PointNetLK's classifier) as ``<run dir>/..``:
     a card names no path of the machine it was exported on."""
-    def spellings(folder: Path) -> list[str]:
-        return sorted({str(folder.resolve()), str(folder.absolute())}, key=len, reverse=True)
-
-    for prefix in spellings(run_dir):
-        text = text.replace(prefix, "<run dir>")
-    for prefix in spellings(run_dir.parent):  # what is left of it: a sibling's path
-        text = text.replace(prefix + "/", "<run dir>/../")
-    return text
+    text = without_folder(text, run_dir, "<run dir>")
+    return without_folder(text, run_dir.parent, "<run dir>/..")  # what is left of it: a sibling's path
 
 
 def main(argv: list[str] | None = None) -> None:
