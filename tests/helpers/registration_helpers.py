@@ -60,6 +60,16 @@ def partial_pair_batch(b: int = 4, n: int = 64, seed: int = 0):
     return se3_apply(se3_inverse(gt), src), ref, gt
 
 
+def turned_batch(b: int, n: int) -> dict[str, torch.Tensor]:
+    """Random clouds turned 0.4 rad about z and shifted, with noise on the reference (torch's global RNG): the
+    first batch of a lockstep start check."""
+    src = torch.rand(b, n, 3) - 0.5
+    angle = torch.tensor(0.4)
+    rot = torch.tensor([[angle.cos(), -angle.sin(), 0.0], [angle.sin(), angle.cos(), 0.0], [0.0, 0.0, 1.0]])
+    gt = se3_from_rt(rot.expand(b, 3, 3), torch.tensor([0.1, 0.0, -0.1]).expand(b, 3))
+    return {"points_src": src, "points_ref": se3_apply(gt, src) + 0.01 * torch.randn(b, n, 3), "transform_gt": gt}
+
+
 def assert_rigid(transform: torch.Tensor) -> None:
     """(B,4,4) finite, orthonormal rotation with det +1, last row (0,0,0,1)."""
     b = transform.shape[0]

@@ -142,7 +142,6 @@ def test_learned_method_in_the_grid(omnet_ckpt, tmp_path):
     assert len(definition["checkpoint_sha256"]) == 64
 
 
-
 def _tiny_prnet(*overrides: str, **options) -> LearnedRegistrator:
     return get_registrator("prnet", fresh_weights=True, model_scale=0.0625, device="cpu", model_overrides=[
         "model.network.num_iters=1", "model.network.num_keypoints=16", *overrides], **options)

@@ -16,7 +16,8 @@ from baselines.learned.idam import IDAM
 from benchmarks import idam_lockstep, lockstep
 from src.data.dataset import EpochSampler
 from src.errors import ConfigError
-from src.geometry import se3_apply, se3_from_rt
+from src.geometry import se3_from_rt
+from tests.helpers.registration_helpers import turned_batch
 
 
 def test_every_weight_of_ours_has_a_counterpart_in_theirs():
@@ -123,11 +124,7 @@ def test_same_start_against_the_authors_code(tmp_path):
     args = argparse.Namespace(authors=Path(os.environ["IDAM_AUTHORS_DIR"]), width=1.0)
     torch.manual_seed(0)
     pair = idam_lockstep.build(args, cfg)
-    src = torch.rand(4, 60, 3) - 0.5
-    angle = torch.tensor(0.4)
-    rot = torch.tensor([[angle.cos(), -angle.sin(), 0.0], [angle.sin(), angle.cos(), 0.0], [0.0, 0.0, 1.0]])
-    gt = se3_from_rt(rot.expand(4, 3, 3), torch.tensor([0.1, 0.0, -0.1]).expand(4, 3))
-    batch = {"points_src": src, "points_ref": se3_apply(gt, src) + 0.01 * torch.randn(4, 60, 3), "transform_gt": gt}
+    batch = turned_batch(4, 60)
     idam_lockstep.check_same_start(pair, batch, tmp_path)  # raises ConfigError where the mapping is wrong
     result = json.loads((tmp_path / "start_check.json").read_text())
     assert result["eval"]["embedding"] < 1e-10 and result["train_iteration1_only"]["gradient_rel"] < 1e-6

@@ -13,7 +13,7 @@ from baselines.learned.prnet import PRNet
 from benchmarks import lockstep, prnet_lockstep
 from src.compose import compose_conf
 from src.errors import ConfigError
-from src.geometry import se3_apply, se3_from_rt
+from tests.helpers.registration_helpers import turned_batch
 
 
 def test_every_weight_of_ours_has_a_counterpart_in_theirs():
@@ -93,11 +93,7 @@ def test_same_start_against_the_authors_code(tmp_path):
     network.update(prnet_lockstep.FIXED, num_keypoints=24)  # of 40 points: seconds, not minutes
     torch.manual_seed(0)
     pair = prnet_lockstep.make_pair(prnet_lockstep.load_authors(Path(os.environ["PRNET_AUTHORS_DIR"])), network)
-    src = torch.rand(3, 40, 3) - 0.5
-    angle = torch.tensor(0.4)
-    rot = torch.tensor([[angle.cos(), -angle.sin(), 0.0], [angle.sin(), angle.cos(), 0.0], [0.0, 0.0, 1.0]])
-    gt = se3_from_rt(rot.expand(3, 3, 3), torch.tensor([0.1, 0.0, -0.1]).expand(3, 3))
-    batch = {"points_src": src, "points_ref": se3_apply(gt, src) + 0.01 * torch.randn(3, 40, 3), "transform_gt": gt}
+    batch = turned_batch(3, 40)
     prnet_lockstep.check_same_start(pair, batch, tmp_path)  # raises ConfigError where the mapping is wrong
     result = json.loads((tmp_path / "start_check.json").read_text())
     assert result["eval"]["transform"] < 1e-10 and result["train"]["gradient_rel"] < 1e-10
