@@ -1,9 +1,12 @@
 """Are an experiment's validation and test pairs equally hard? Each method's mean Error(R) and Error(t) on both
 splits, with bootstrap 95 % intervals of the mean (pairs resampled), so that a gap between a model's validation and
-test numbers can be told apart from a difference between the sets or from the spread of a 100-pair mean.
+test numbers can be told apart from a difference between the sets or from the spread of a 100-pair mean. With
+``--train-shapes N``, also on fixed pairs of the first N training shapes (drawn as the evaluation sets draw theirs):
+a model as wrong on the shapes it trained on as on new ones underfits; one far better there overfits.
 
     python -m benchmarks.split_gap --exp real_airplane --methods identity,icp,fgr
     python -m benchmarks.split_gap --exp real_airplane --methods icp,idam --checkpoint idam=PATH.ckpt --out GAP.md
+    python -m benchmarks.split_gap --exp real_airplane --methods omnet --checkpoint omnet=PATH.ckpt --train-shapes 100
 """
 
 from __future__ import annotations
@@ -17,15 +20,26 @@ import numpy as np
 from baselines.registry import resolve_registrator
 from benchmarks.grid_run import cell_metrics, register
 from src.config import euler_seq_for
+from src.data.dataset import EVAL_STREAM, PairDataset
 from src.errors import ConfigError, exit_code_of
 from src.metrics import ERROR_R, ERROR_T
 
 SPLITS = ("val", "test")
 
 
-def split_pairs(experiment: str, sampling: str, partial: str, overrides: Sequence[str] = ()) -> dict[str, list]:
+def fixed_training_pairs(train: PairDataset, shapes: int) -> PairDataset:
+    """Fixed pairs of the first ``shapes`` training shapes, one each, drawn by the evaluation stream (the pairs of
+    one evaluation, not of a training epoch) with the training set's transforms."""
+    if not 0 < shapes <= len(train):
+        raise ConfigError(f"--train-shapes must be between 1 and the {len(train)} training shapes, got {shapes}")
+    return PairDataset(train.points, train.labels, train.shape_indices[:shapes], train.transforms, train.seed,
+                       EVAL_STREAM, normals=train.normals)
+
+
+def split_pairs(experiment: str, sampling: str, partial: str, overrides: Sequence[str] = (),
+                train_shapes: int = 0) -> dict[str, list]:
     """The fixed validation and test pairs ``(src, ref, transform_gt)`` of an experiment, as training and
-    ``src.eval`` see them."""
+    ``src.eval`` see them, and with ``train_shapes`` first those of :func:`fixed_training_pairs`."""
     import hydra
 
     from src.compose import compose_experiment
@@ -38,10 +52,13 @@ def split_pairs(experiment: str, sampling: str, partial: str, overrides: Sequenc
     missing = [s for s in SPLITS if s not in datamodule.datasets]
     if missing:
         raise ConfigError(f"experiment {experiment} has no {' or '.join(missing)} split (data.splits)")
+    datasets = {split: datamodule.datasets[split] for split in SPLITS}
+    if train_shapes:
+        datasets = {"train": fixed_training_pairs(datamodule.datasets["train"], train_shapes), **datasets}
     out = {}
-    for split in SPLITS:
-        pair_set = TestSet(experiment, sampling, partial, cfg, datamodule.datasets[split], {})
-        out[split] = pair_set.pairs(len(pair_set.dataset))
+    for split, dataset in datasets.items():
+        pair_set = TestSet(experiment, sampling, partial, cfg, dataset, {})
+        out[split] = pair_set.pairs(len(dataset))
     return out
 
 
@@ -81,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="a learned method's checkpoint (repeatable)")
     parser.add_argument("--sampling", choices=("os", "ts"), default="ts")
     parser.add_argument("--partial", choices=("prnet", "rpmnet"), default="prnet")
+    parser.add_argument("--train-shapes", type=int, default=0, metavar="N",
+                        help="also fixed pairs of the first N training shapes (underfitting or overfitting?)")
     parser.add_argument("--override", action="append", default=[], help="a Hydra override of the experiment")
     parser.add_argument("--workers", type=int, default=1, help="a classical method's worker processes (0: in this one)")
     parser.add_argument("--out", type=Path, default=None, help="also write the table here (Markdown)")
@@ -96,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ConfigError(f"--checkpoint expects METHOD=PATH, got '{item}'")
             checkpoints[method] = path
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-        pairs = split_pairs(args.exp, args.sampling, args.partial, args.override)
+        pairs = split_pairs(args.exp, args.sampling, args.partial, args.override, args.train_shapes)
         table = pd.DataFrame(gap_table(methods, pairs, args.partial, checkpoints, args.workers)).to_markdown(index=False,
                                                                                                 floatfmt=".3f")
         print(table)

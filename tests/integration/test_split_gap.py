@@ -48,3 +48,30 @@ def test_both_splits_are_the_datamodules_and_identity_scores_their_true_poses(tm
     assert "| identity | test    |       3 |" in out.read_text()
     assert split_gap.main(["--methods", "identity", "--checkpoint", "idam", *[f"--override={o}" for o in overrides]]) == 2
     assert capsys.readouterr().err.endswith("error: --checkpoint expects METHOD=PATH, got 'idam'\n")
+
+
+@pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
+def test_training_pairs_are_fixed_pairs_of_the_first_training_shapes(tmp_path, capsys):
+    import hydra
+
+    prepare("modelnet40_resampled", source=[ZIP], cache_root=tmp_path, limit=8, workers=1)
+    overrides = [f"data.cache_root={tmp_path}", "test_size=3", "val_size=1"]  # 4 train, 1 val (x val_repeat), 3 test
+    pairs = split_gap.split_pairs("real_airplane", "ts", "prnet", overrides, train_shapes=3)
+    assert list(pairs) == ["train", "val", "test"] and len(pairs["train"]) == 3
+    for without, with_train in zip(split_gap.split_pairs("real_airplane", "ts", "prnet", overrides)["test"], pairs["test"]):
+        np.testing.assert_array_equal(without[0], with_train[0])  # the other splits are what they were
+    cfg = compose_config("+exp=real_airplane", "sampling=ts", "partial=prnet", *overrides)
+    datamodule = hydra.utils.instantiate(cfg.data)
+    datamodule.setup("fit")
+    train = datamodule.datasets["train"]
+    fixed = split_gap.fixed_training_pairs(train, 3)
+    assert list(fixed.shape_indices) == list(train.shape_indices[:3])
+    assert not set(fixed.shape_indices) & set(datamodule.datasets["val"].shape_indices)
+    for (src, _, gt), item in zip(pairs["train"], fixed):
+        np.testing.assert_array_equal(src, item["points_src"].numpy())
+        np.testing.assert_array_equal(gt, item["transform_gt"].numpy())
+    epoch_draw = train[0]["transform_gt"].numpy()  # the training stream draws other poses of the same shape
+    assert not np.array_equal(epoch_draw, pairs["train"][0][2])
+    assert split_gap.main(["--methods", "identity", "--workers", "0", "--train-shapes", "9",
+                           *[f"--override={o}" for o in overrides]]) == 2
+    assert capsys.readouterr().err.endswith("error: --train-shapes must be between 1 and the 4 training shapes, got 9\n")
