@@ -12,6 +12,7 @@ a model as wrong on the shapes it trained on as on new ones underfits; one far b
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                                                 floatfmt=".3f")
         print(table)
         if args.out:
-            args.out.write_text(f"`python -m benchmarks.split_gap {' '.join(argv or [])}`\n\n{table}\n")
+            args.out.write_text(f"`python -m benchmarks.split_gap {' '.join(sys.argv[1:] if argv is None else argv)}`\n\n{table}\n")
 
     return exit_code_of(action)
 

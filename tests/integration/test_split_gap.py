@@ -46,6 +46,7 @@ def test_both_splits_are_the_datamodules_and_identity_scores_their_true_poses(tm
     assert split_gap.main(["--methods", "identity", "--workers", "0", "--out", str(out),
                            *[f"--override={o}" for o in overrides]]) == 0
     assert "| identity | test    |       3 |" in out.read_text()
+    assert out.read_text().startswith("`python -m benchmarks.split_gap --methods identity --workers 0 --out ")
     assert split_gap.main(["--methods", "identity", "--checkpoint", "idam", *[f"--override={o}" for o in overrides]]) == 2
     assert capsys.readouterr().err.endswith("error: --checkpoint expects METHOD=PATH, got 'idam'\n")
 
