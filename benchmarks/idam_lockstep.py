@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from benchmarks.lockstep import Pair, as_double, copy_mapped, cuda_on_cpu, float64_mode, write_check
+from benchmarks.lockstep import Pair, as_double, check_start, copy_mapped, cuda_on_cpu, float64_mode
 from src.errors import ConfigError
 
 AUTHORS_REPO = "jiahaowork/idam"
@@ -38,8 +38,6 @@ LABELS = {"ours": "ours (baselines.learned.idam)", "authors": "authors' code (ji
 TITLE = "IDAM, ours and the authors' code in lockstep (real airplanes, TS, PRNet manner, clean)"
 #: Their hard-coded constants (model.py:120 knn k=12, :214 N // 6, :198 0.05) and ours that must match them.
 FIXED = {"k": 12, "keep_divisor": 6, "match_dist": 0.05}
-EVAL_TOLERANCE = 1e-8  # float64, max |ours − theirs| of iteration 1 in eval mode
-TRAIN_TOLERANCE = 1e-6  # float64, relative, the training loss and gradients
 
 
 def _load(name: str, path: Path) -> types.ModuleType:
@@ -358,11 +356,9 @@ def check_same_start(pair: IDAMPair, batch: dict[str, Tensor], out: Path) -> Non
                   "train_control_ours_vs_ours_nudged_1e-15": _train_control(pair, double, nudge=True),
                   "train_control_ours_vs_ours_summed_as_theirs": _train_control(pair, double, nudge=False),
                   "train_their_procrustes": _train_pass(pair, double, our_head=False)}
-    write_check(out, result)
     eval_diff = max(result["eval"][k] for k in ("embedding", "significance", "similarity_iter1", "weight_logits_iter1"))
     train_diff = max(result[k][rel] for k in ("train_iteration1_only", "train") for rel in ("loss_rel", "gradient_rel"))
-    if eval_diff > EVAL_TOLERANCE or train_diff > TRAIN_TOLERANCE:
-        raise ConfigError(f"ours and the authors' code differ at the start ({result}): the weight mapping is wrong")
+    check_start(out, result, eval_diff, train_diff)
 
 
 def main(argv: list[str] | None = None) -> int:

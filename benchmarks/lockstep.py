@@ -227,6 +227,20 @@ def write_check(out: Path, result: dict) -> None:
     print(f"same start: {result}", flush=True)
 
 
+#: The start check of an adapter that compares per-layer outputs and gradients (IDAM, PRNet), in float64: the largest
+#: |ours − theirs| of the first iteration in eval mode, and the largest relative difference of the training loss and
+#: gradients.
+START_EVAL_TOLERANCE = 1e-8
+START_TRAIN_TOLERANCE = 1e-6
+
+
+def check_start(out: Path, result: dict, eval_diff: float, train_diff: float) -> None:
+    """Write the start check (:func:`write_check`), then ConfigError if either difference exceeds its tolerance."""
+    write_check(out, result)
+    if eval_diff > START_EVAL_TOLERANCE or train_diff > START_TRAIN_TOLERANCE:
+        raise ConfigError(f"ours and the authors' code differ at the start ({result}): the weight mapping is wrong")
+
+
 def plot(curves: Path, out: Path, labels: dict[str, str], title: str) -> Path:
     """Validation Error(R) and Error(t) against steps, ours and the authors' code, from ``curves.csv``."""
     import matplotlib

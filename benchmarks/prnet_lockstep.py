@@ -47,7 +47,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import gumbel_softmax
-from benchmarks.lockstep import Pair, as_double, copy_mapped, cuda_on_cpu, float64_mode, write_check
+from benchmarks.lockstep import Pair, as_double, check_start, copy_mapped, cuda_on_cpu, float64_mode
 from src.errors import ConfigError
 
 AUTHORS_REPO = "WangYueFt/prnet"
@@ -82,8 +82,6 @@ CONSTANTS = ("acpnet.head.reflect", "acpnet.head.temperature")
 #: ~3.5 GB a pair (their (B, 2C, N, k) edge features, model.py:73), so the check is bounded whatever ``--batch``;
 #: two, the fewest their TemperatureNet's train-mode BatchNorm accepts (model.py:390).
 CHECK_PAIRS = 2
-EVAL_TOLERANCE = 1e-8  # float64, max |ours − theirs| of iteration 1 in eval mode, the same noise
-TRAIN_TOLERANCE = 1e-6  # float64, relative, the training loss and gradients, the same noise
 
 
 class _View(types.ModuleType):
@@ -442,12 +440,10 @@ def check_same_start(pair: PRNetPair, batch: dict[str, Tensor], out: Path) -> No
                   "train_our_layer_norm": _train_pass(pair, double, as_theirs=("svd_weights",)),
                   "train_our_svd_weights": _train_pass(pair, double, as_theirs=("layer_norm",)),
                   "train_own_noise": _train_pass(pair, double, same_noise=False)}
-    write_check(out, result)
     iteration1 = ("embedding", "pointer", "step_ab_iter1", "step_ba_iter1", "disparity_iter1")
     eval_diff = max(result["eval"][k] for k in iteration1)
     train_diff = max(result["train"]["loss_rel"], result["train"]["gradient_rel"])
-    if eval_diff > EVAL_TOLERANCE or train_diff > TRAIN_TOLERANCE:
-        raise ConfigError(f"ours and the authors' code differ at the start ({result}): the weight mapping is wrong")
+    check_start(out, result, eval_diff, train_diff)
 
 
 def main(argv: list[str] | None = None) -> int:
