@@ -39,6 +39,10 @@ class DiskError(UserError):
     """A full disk, or a folder without write permission."""
 
 
+class DivergenceError(UserError):
+    """Training produced a non-finite loss (the run diverged): stopped before the step that would spread it."""
+
+
 class Interrupted(Exception):
     """A run stopped by a signal (``SIGTERM`` from ``timeout``/SLURM/a sweep launcher, ``SIGINT``
     from Ctrl+C): it exits with status ``128 + signal`` (143, 130) after one ``error:`` line, and its

@@ -17,7 +17,7 @@ from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
 from torchmetrics import MeanMetric
 
-from src.errors import ConfigError
+from src.errors import ConfigError, DivergenceError
 from src.metrics import SCORE, RegistrationMetrics
 from src.models.base import check_network
 
@@ -130,6 +130,16 @@ def check_scheduler(spec: Mapping[str, Any] | None) -> dict[str, Any] | None:
     return spec
 
 
+def refuse_non_finite(losses: dict[str, Tensor], step: int, lr: float) -> None:
+    """Stop a run whose loss is not finite, before its optimiser step writes NaN into the weights (one line:
+    the step, the terms, what to do; the checkpoints written before stay)."""
+    if bool(torch.isfinite(losses["loss"])):
+        return
+    terms = ", ".join(f"{k}={float(v):.4g}" for k, v in sorted(losses.items(), key=lambda kv: kv[0] != "loss"))
+    raise DivergenceError(f"training diverged at step {step}: the loss is not finite ({terms}); resume from the run's "
+                          f"last checkpoint with a lower model.lr (now {lr:g}) or trainer.gradient_clip_val=1.0")
+
+
 class RegistrationModule(L.LightningModule):
     """Wraps a network (see :mod:`src.models.base`) with its loss, the paper's metrics, Adam and a
     learning-rate schedule.
@@ -197,6 +207,7 @@ class RegistrationModule(L.LightningModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         outputs = self._run(batch)
         losses = self.network.loss(outputs, batch["transform_gt"])
+        refuse_non_finite(losses, self.global_step, self.hparams.lr)
         self.log_dict({f"train/{k}": v.detach() for k, v in losses.items()}, prog_bar=False, batch_size=batch["points_src"].shape[0])
         self.log("train_loss", losses["loss"].detach(), prog_bar=True, logger=False)
         return losses["loss"]
