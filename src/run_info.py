@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -98,7 +99,8 @@ def start_line(trainer: L.Trainer, module: L.LightningModule) -> str:
     parameters = sum(p.numel() for p in module.parameters())
     model = f"{type(network).__name__} {parameters / 1e6:.2f} M parameters" + (f" (width {width:g})" if width else "")
     processes = f" x {trainer.world_size} processes" if trainer.world_size > 1 else ""
-    budget = f"{trainer.estimated_stepping_batches:,} steps x batch {getattr(datamodule, 'batch_size', '?')}{processes}"
+    steps = trainer.estimated_stepping_batches
+    budget = f"{'unlimited' if math.isinf(steps) else f'{int(steps):,}'} steps x batch {getattr(datamodule, 'batch_size', '?')}{processes}"
     resumed = f" (resuming at step {trainer.global_step:,})" if trainer.global_step else ""
     return f"train: {data} | {model} | {budget}{resumed} on {_device(trainer)} | run dir {trainer.default_root_dir}"
 
@@ -142,10 +144,14 @@ class TrainingForecast(L.Callback):
 
     def forecast(self, trainer: L.Trainer, pl_module: L.LightningModule, seconds_per_step: float) -> str:
         """The estimate line for ``seconds_per_step`` measured now."""
+        measured = (f"train: {seconds_per_step:.2f} s/step measured over steps {trainer.global_step - self.after_steps + 1}-"
+                    f"{trainer.global_step}")
+        if math.isinf(trainer.estimated_stepping_batches):
+            return (f"{measured}: no step limit (trainer.max_steps=-1, trainer.max_epochs=-1): training runs until "
+                    "trainer.max_time, callbacks.clock.budget_cpu_hours or a signal stops it")
         total = int(trainer.estimated_stepping_batches)
         remaining = max(total - trainer.global_step, 0)
-        line = (f"train: {seconds_per_step:.2f} s/step measured over steps {trainer.global_step - self.after_steps + 1}-"
-                f"{trainer.global_step}: the remaining {remaining:,} steps take ~{format_duration(remaining * seconds_per_step)} "
+        line = (f"{measured}: the remaining {remaining:,} steps take ~{format_duration(remaining * seconds_per_step)} "
                 "on this machine (validation extra)")
         if trainer.strategy.root_device.type == "cpu" and total * seconds_per_step > self.long_hours * 3600:
             advice = cpu_sized(type(getattr(pl_module, "network", pl_module)).__name__)

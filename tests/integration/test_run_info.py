@@ -92,6 +92,16 @@ def test_the_estimate_of_a_paper_scale_cpu_schedule_says_how_long_and_how_to_siz
     assert "\n" not in forecast.forecast(_trainer(260_000, 11, "cuda"), omnet, 0.2)
 
 
+def test_a_run_without_a_step_limit_is_told_what_stops_it():
+    """max_steps=-1 and max_epochs=-1 (a run stopped by time or a signal: benchmarks.gpu_study): the estimate
+    crashed on Lightning's infinite step count (OverflowError)."""
+    omnet = SimpleNamespace(network=type("OMNet", (), {})())
+    line = TrainingForecast(after_steps=10).forecast(_trainer(float("inf"), 11), omnet, 0.5)
+    assert line == ("train: 0.50 s/step measured over steps 2-11: no step limit (trainer.max_steps=-1, "
+                    "trainer.max_epochs=-1): training runs until trainer.max_time, callbacks.clock.budget_cpu_hours "
+                    "or a signal stops it")
+
+
 @pytest.mark.parametrize("seconds, text", [(42, "42 s"), (150, "2.5 min"), (7200, "2.0 h"), (86400 * 49, "49 days"),
                                            (86400 * 1000, "2.7 years")])
 def test_durations_read_in_the_unit_of_their_size(seconds, text):
