@@ -134,6 +134,16 @@ def _content_hash(manifest: Mapping) -> str:
     return hashlib.sha256(json.dumps(fields, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
+def manifest_without_normals(manifest: Mapping) -> dict:
+    """A copy of ``manifest`` that lists no normals file in any split, its content hash recomputed: the manifest
+    of the same cache with its optional normals left out (a smaller copy to carry elsewhere)."""
+    fields = json.loads(json.dumps(manifest))
+    for info in fields["splits"].values():
+        info["files"].pop("normals", None)
+    fields.pop("content_hash", None)
+    return {**fields, "content_hash": _content_hash(fields)}
+
+
 def _read_manifest(path: Path) -> dict:
     """The manifest of a complete, intact cache (content verified); otherwise DatasetError naming the cause."""
     manifest_file = path / "manifest.json"
