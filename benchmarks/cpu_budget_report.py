@@ -13,6 +13,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from collections.abc import Collection
 
 import pandas as pd
 
@@ -98,21 +99,27 @@ def collect(root: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.concat(curves, ignore_index=True), pd.DataFrame(rows)
 
 
-def plot(curves: pd.DataFrame, out: Path, budget_h: float) -> None:
-    """Validation Error(R) against CPU hours, one line per method, log y."""
+def plot(curves: pd.DataFrame, out: Path, budget_h: float, dashed: Collection[str] = (),
+         xlabel: str = "training CPU hours (one thread)", log_x: bool = False) -> None:
+    """Validation Error(R) against CPU hours, one line per method (``dashed``: those methods' lines), log y (and
+    log x with ``log_x``)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    many = curves["method"].nunique() > 10  # beyond the default ten colours: twenty, the legend beside the axes
+    fig, ax = plt.subplots(figsize=(10.5, 5.2) if many else (7.5, 4.8))
+    if many:
+        ax.set_prop_cycle(color=plt.cm.tab20.colors)
     for method, group in curves.groupby("method", sort=False):
-        ax.plot(group["cpu_hours"], group[ERROR_R], marker="o", markersize=2.5, label=method)
+        ax.plot(group["cpu_hours"], group[ERROR_R], marker="o", markersize=2.5, label=method,
+                linestyle="--" if method in dashed else "-")
     ax.axvline(budget_h, color="grey", linestyle=":", linewidth=1)
-    ax.set(xlabel="training CPU hours (one thread)", ylabel="validation Error(R) [deg], lower is better", yscale="log",
-           title="Learned methods on real airplanes (TS, PRNet manner, clean)")
+    ax.set(xlabel=xlabel, ylabel="validation Error(R) [deg], lower is better", yscale="log",
+           title="Learned methods on real airplanes (TS, PRNet manner, clean)", xscale="log" if log_x else "linear")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=2)
+    ax.legend(fontsize=8, **({"loc": "upper left", "bbox_to_anchor": (1.01, 1.0)} if many else {"ncol": 2}))
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)

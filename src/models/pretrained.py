@@ -80,7 +80,7 @@ def run_experiment(run_dir: Path, results: dict[str, Any]) -> str:
     return results["task"]
 
 
-def _stored(state_dict: dict[str, Any], half: bool) -> dict[str, Any]:
+def stored_weights(state_dict: dict[str, Any], half: bool) -> dict[str, Any]:
     """The weights as written: floating-point tensors in float16 when ``half`` (loading casts them back to the
     module's float32), the others as they are."""
     return {k: v.half() if half and v.is_floating_point() else v for k, v in state_dict.items()}
@@ -99,7 +99,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.ckpt"
     hyper_parameters = json.loads(_portable(json.dumps(full["hyper_parameters"]), run_dir))  # e.g. feature_init
-    torch.save({"state_dict": _stored(full["state_dict"], half), "hyper_parameters": hyper_parameters,
+    torch.save({"state_dict": stored_weights(full["state_dict"], half), "hyper_parameters": hyper_parameters,
                 "pytorch-lightning_version": full["pytorch-lightning_version"]}, target)
     network = hyper_parameters["network"]
     card: dict[str, Any] = {
