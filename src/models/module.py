@@ -135,7 +135,8 @@ def refuse_non_finite(losses: dict[str, Tensor], step: int, lr: float) -> None:
     the step, the terms, what to do; the checkpoints written before stay)."""
     if bool(torch.isfinite(losses["loss"])):
         return
-    terms = ", ".join(f"{k}={float(v):.4g}" for k, v in sorted(losses.items(), key=lambda kv: kv[0] != "loss"))
+    ordered = sorted(losses.items(), key=lambda item: item[0] != "loss")  # the total first
+    terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in ordered)
     raise DivergenceError(f"training diverged at step {step}: the loss is not finite ({terms}); resume from the run's "
                           f"last checkpoint with a lower model.lr (now {lr:g}) or trainer.gradient_clip_val=1.0")
 
