@@ -4,7 +4,10 @@ BatchNorm, kept points only, chunks), for both fusion maskings, shared and per-i
 
 The comparisons run in float64: a small untrained network iterated four times amplifies rounding (in float32
 the plain dataflow itself is ~1e-4 from its float64 result after one training-mode iteration on 3 clouds, ~1
-after four), so float32 would test the conditioning, not the math."""
+after four), so float32 would test the conditioning, not the math. In float64 the same amplification leaves ~1e-9
+to 2e-8 between the two on a given machine (the order of the BLAS sums differs between CPUs: 1.7e-8 absolute,
+2.8e-6 relative on the topk configuration here): the tolerance sits well above that and far below what a wrong
+mask, pool or fold gives (O(0.1) and more)."""
 
 import copy
 
@@ -15,7 +18,7 @@ from src.models.omnet import OMNet, OMNetIteration
 from tests.helpers.omnet_reference import _iteration, reference_forward
 from tests.helpers.registration_helpers import partial_pair_batch
 
-TOL = dict(rtol=1e-7, atol=1e-8)
+TOL = dict(rtol=1e-5, atol=1e-6)
 CONFIGS = {
     "official": {},
     "every_layer": dict(fusion_masking="every_layer"),
