@@ -6,8 +6,9 @@
 The real airplanes' cache is 144 MB (points and normals, float32); the GPU runs read points only, and the
 points are the source files' 6-decimal values, so each is an integer number of micro-units. ``pack`` keeps
 the points as those integers (refusing a cache whose points are not), their four bytes as separate planes, and
-a bit per point for the sign of a zero (``-0.000000``), LZMA-compressed (75 MB of points -> about 47 MB), with the labels and a manifest without normals. ``unpack``
-rebuilds the same ``.npy`` files byte for byte: the cache's own sha256 check (``open_cache``) proves it.
+a bit per point for the sign of a zero (``-0.000000``), LZMA-compressed (75 MB of points -> 46.6 MB), with the
+labels and a manifest without normals. ``unpack`` rebuilds the same ``.npy`` files byte for byte: the cache's
+own sha256 check (``open_cache``) proves it.
 """
 
 from __future__ import annotations
