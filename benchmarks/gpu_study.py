@@ -41,6 +41,7 @@ import torch
 import yaml
 
 from benchmarks.gpu_run import SHARD_BYTES
+from src.checkpoint_io import read_checkpoint
 from src.errors import ConfigError, exit_code_of
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
@@ -151,7 +152,7 @@ def run_phases(run: StudyRun, root: Path, start: float, seconds: float, every: i
 
 def trained(checkpoint: Path) -> dict[str, Any]:
     """Steps and training wall seconds (src.callbacks.TrainingClock) of a checkpoint."""
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    state = read_checkpoint(checkpoint)
     clock = next((v for k, v in state.get("callbacks", {}).items() if k.startswith("TrainingClock")), {})
     wall = clock.get("wall_seconds", 0.0)
     return {"steps": int(state["global_step"]), "train_wall_s": round(wall, 1),
@@ -161,7 +162,7 @@ def trained(checkpoint: Path) -> dict[str, Any]:
 def best_in(phase_dir: Path) -> tuple[Path, float] | None:
     """The phase's best checkpoint by its checkpoint callback's monitor, with its score (None without one)."""
     for path in sorted((phase_dir / "checkpoints").glob("best-*.ckpt")):
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = read_checkpoint(path)
         for key, value in state.get("callbacks", {}).items():
             if key.startswith("ModelCheckpoint") and value.get("best_model_score") is not None \
                     and Path(value.get("best_model_path", "")).name == path.name:
@@ -186,7 +187,7 @@ def export_selected(run_dir: Path, selection: dict[str, Any]) -> Path:
     """``<run>/model.ckpt``: the selected checkpoint's weights in float16 (src.eval loads it as float32)."""
     from src.models.pretrained import stored_weights
 
-    full = torch.load(run_dir / selection["checkpoint"], map_location="cpu", weights_only=False)
+    full = read_checkpoint(run_dir / selection["checkpoint"])
     target = run_dir / "model.ckpt"
     torch.save({"state_dict": stored_weights(full["state_dict"], half=True),
                 **{key: full[key] for key in ("hyper_parameters", "global_step", "pytorch-lightning_version")}}, target)
