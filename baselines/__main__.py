@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 from baselines.methods import markdown_table
 from baselines.register_cli import add_parser
-from src.errors import exit_code_of
+from src.utils.errors import exit_code_of
 
 
 def main(argv: Sequence[str] | None = None) -> int:

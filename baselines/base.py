@@ -20,9 +20,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from baselines.conditioning import POINT_BUDGET, within_budget, working_frame
+from baselines.conditioning import POINT_BUDGET, condition
 from baselines.result import FIT_THRESHOLD, RegistrationResult, check_threshold, one_line
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.geometry.clouds import check_batch, check_cloud
 
 __all__ = ["Registrator", "RegistratorConfig"]
@@ -174,11 +174,8 @@ class Registrator(ABC):
 
     def _register_conditioned(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """:meth:`_register` of a checked pair in the working frame, within the point budget."""
-        frame = working_frame(src, ref) if self.normalise_frame else None
-        if frame is not None:
-            src, ref = frame.apply(src), frame.apply(ref)
-        transform = _as_transform(self._register(*within_budget(src, ref, self.point_budget)))
-        return transform if frame is None else frame.map_back(transform)
+        src, ref, undo = condition(src, ref, normalise_frame=self.normalise_frame, budget=self.point_budget)
+        return undo(_as_transform(self._register(src, ref)))
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.config!r})"

@@ -14,7 +14,7 @@ Used by :meth:`baselines.base.Registrator.register`; the measurements behind the
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,3 +109,19 @@ def within_budget(src: np.ndarray, ref: np.ndarray, budget: int | None) -> tuple
         return src, ref
     voxel = budget_voxel_size((src, ref), budget)
     return voxel_down_sample(src, voxel), voxel_down_sample(ref, voxel)
+
+
+def _unchanged(transform: np.ndarray) -> np.ndarray:
+    return transform
+
+
+def condition(src: np.ndarray, ref: np.ndarray, *, normalise_frame: bool = True, budget: int | None = POINT_BUDGET
+              ) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """A checked pair as a method registers it: in the working frame (when ``normalise_frame`` and it lies
+    outside), then within the point ``budget``; with ``undo``, which maps a transform estimated on the
+    conditioned pair back into the input's coordinates."""
+    frame = working_frame(src, ref) if normalise_frame else None
+    if frame is not None:
+        src, ref = frame.apply(src), frame.apply(ref)
+    src, ref = within_budget(src, ref, budget)
+    return src, ref, (_unchanged if frame is None else frame.map_back)

@@ -5,8 +5,8 @@ for a learned one), display name, kind, what registers (a classical method's laz
 a learned method's network ``_target_``), its place in the paper's tables, its citation and aliases.
 Derived from :data:`METHODS`: the registry of :mod:`baselines.registry`, the learned adapters of
 :mod:`baselines.learned.adapter`, the display names and the row order of :mod:`benchmarks.tables`,
-the matching with the paper's tables (:func:`benchmarks.paper.method_key`), the grid's default
-method list and ``method_options`` (:mod:`benchmarks.grid_plan`), and the speed tables' default methods
+the matching with the paper's tables (:func:`benchmarks.tables.paper.method_key`), the grid's default
+method list and ``method_options`` (:mod:`benchmarks.grid.plan`), and the speed tables' default methods
 and column order (:mod:`benchmarks.speed`). Published weights name their
 method (``Published.method`` in :mod:`baselines.learned.published`).
 
@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args
 
-from src.errors import ConfigError
-from src.records import load_records
+from src.utils.errors import ConfigError
+from src.utils.records import load_records
 
 Kind = Literal["classical", "learned"]
 KINDS: tuple[str, ...] = get_args(Kind)

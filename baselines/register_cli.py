@@ -37,10 +37,10 @@ from baselines.conditioning import WORKING_RADIUS, Similarity, pair_radius
 from baselines.methods import display_name
 from baselines.registry import get_registrator
 from baselines.result import FIT_THRESHOLD, inlier_fit
-from src.cloud_panels import REFERENCE, SOURCE, centre, half_size, panel
+from baselines.cloud_panels import REFERENCE, SOURCE, centre, half_size, panel
 from src.data.point_files import read_points, write_ply
 from src.data.scans import shared_similarity
-from src.errors import ConfigError, UserError
+from src.utils.errors import ConfigError, UserError
 from src.geometry.numpy_rigid import apply_transform
 
 #: Points per cloud a learned method registers (the shipped models' training clouds: PRNet-manner crops of 768).

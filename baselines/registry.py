@@ -11,7 +11,7 @@ from typing import Any
 
 from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import METHODS, find_method
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 #: name -> Registrator subclass, or "module:Class" imported on first use: every record of
 #: :data:`baselines.methods.METHODS`, and what :func:`register_registrator` adds.

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from src.geometry.numpy_rigid import apply_transform
 
 __all__ = ["FIT_THRESHOLD", "RegistrationResult", "inlier_fit", "one_line", "transform_problem"]

@@ -199,7 +199,7 @@ class _Slot:
 
 def _raise_startup_error(desc: str, line: str, trace: str, exc_bytes: bytes | None) -> None:
     """Re-raise a worker's set-up failure: user errors as themselves, others with the trace."""
-    from src.errors import UserError
+    from src.utils.errors import UserError
 
     exc = None
     if exc_bytes is not None:
@@ -260,7 +260,7 @@ def run_pairs(
         return _run_serial(registrator, pairs, timeout_s, progress, desc)
 
     threads = threads_per_worker or max(1, len(cpus) // workers)
-    cpu_sets = [[cpus[(w * threads + k) % len(cpus)] for k in range(threads)] for w in range(workers)]
+    cpu_sets = [sorted({cpus[(w * threads + k) % len(cpus)] for k in range(threads)}) for w in range(workers)]
     try:
         payload = pickle.dumps(registrator)
     except Exception as exc:  # noqa: BLE001 - explain what is needed
@@ -269,82 +269,107 @@ def run_pairs(
             f"(keep native handles out of its attributes, or pass workers=0): {one_line(exc)}"
         ) from exc
     ctx = multiprocessing.get_context(mp_context)
-    results: list[RegistrationResult | None] = [None] * n
-    todo = list(range(n - 1, -1, -1))  # a stack: pop() yields 0, 1, 2, ...
-    slots = [_Slot(ctx, payload, sorted(set(c)), threads, timeout_s) for c in cpu_sets]
-    bar = _progress_bar(n, progress, desc)
-    n_failed = 0
+    slots = [_Slot(ctx, payload, cpu_set, threads, timeout_s) for cpu_set in cpu_sets]
+    return _run_parallel(slots, pairs, timeout_s, progress, desc)
 
-    def record(index: int, result: RegistrationResult) -> None:
-        nonlocal n_failed
-        results[index] = result
-        n_failed += result.failed
-        bar.update(1)
-        if n_failed:
-            bar.set_postfix(failed=n_failed, refresh=False)
 
+class _Results:
+    """The results in input order as they arrive, with the progress bar and its count of failed pairs."""
+
+    def __init__(self, total: int, progress: bool, desc: str) -> None:
+        self.items: list[RegistrationResult | None] = [None] * total
+        self.bar = _progress_bar(total, progress, desc)
+        self.failed = 0
+
+    def record(self, index: int, result: RegistrationResult) -> None:
+        self.items[index] = result
+        self.failed += result.failed
+        self.bar.update(1)
+        if self.failed:
+            self.bar.set_postfix(failed=self.failed, refresh=False)
+
+    @property
+    def complete(self) -> bool:
+        return all(r is not None for r in self.items)
+
+
+def _dispatch(slots: list[_Slot], todo: list[int], pairs: list[tuple[Any, Any]]) -> None:
+    """Hand the next pairs to idle, ready workers (restarting ended ones while pairs remain)."""
+    for slot in slots:
+        if slot.conn is None and todo:
+            slot.start()
+        if slot.ready and slot.task is None and todo:
+            index = todo.pop()
+            if not slot.assign(index, *pairs[index]):
+                todo.append(index)  # the worker died while idle: retry on a fresh one
+
+
+def _collect(live: list[_Slot], results: _Results, desc: str) -> None:
+    """Read what the busy or starting workers sent, waiting at most until the nearest deadline (and 1 s)."""
+    wait_s = max(0.0, min(s.deadline for s in live) - time.monotonic())
+    ready_conns = wait([s.conn for s in live], timeout=min(wait_s, 1.0))
+    for slot in live:
+        if slot.conn not in ready_conns:
+            continue
+        try:
+            msg = slot.conn.recv()
+        except (EOFError, OSError):
+            reason = slot.exit_description()
+            if slot.task is None:
+                raise RuntimeError(
+                    f"{desc}: {reason} while starting; if run_pairs is called from a script, "
+                    "guard the script's entry point with `if __name__ == '__main__':` "
+                    "(worker processes are started with multiprocessing's 'spawn')"
+                ) from None
+            results.record(slot.task, RegistrationResult.failure(reason, time.monotonic() - slot.started))
+            slot.kill()
+            continue
+        kind = msg[0]
+        if kind == "ready":
+            slot.ready = True
+            slot.deadline = math.inf
+        elif kind == "startup_error":
+            _raise_startup_error(desc, *msg[1:])
+        else:  # "done"
+            results.record(slot.task, msg[1])
+            slot.task, slot.deadline = None, math.inf  # idle: no deadline until its next pair
+
+
+def _time_out(slots: list[_Slot], results: _Results, timeout_s: float | None, desc: str) -> None:
+    """Kill the workers past their deadline, their pair recorded as timed out."""
+    now = time.monotonic()
+    for slot in slots:
+        if slot.conn is None or now < slot.deadline:
+            continue
+        if slot.task is None:
+            raise RuntimeError(f"{desc}: worker did not start within {_STARTUP_TIMEOUT_S:g} s")
+        reason = f"timed out after {timeout_s:g} s (worker killed)"
+        results.record(slot.task, RegistrationResult.failure(reason, now - slot.started, timed_out=True))
+        slot.kill()
+
+
+def _run_parallel(slots: list[_Slot], pairs: list[tuple[Any, Any]], timeout_s: float | None, progress: bool,
+                  desc: str) -> list[RegistrationResult]:
+    """Every pair through the worker ``slots``: dispatch, collect, time out, until each has its result."""
+    results = _Results(len(pairs), progress, desc)
+    todo = list(range(len(pairs) - 1, -1, -1))  # a stack: pop() yields 0, 1, 2, ...
     try:
         for slot in slots:
             slot.start()
-        while any(r is None for r in results):
-            # hand out work to idle, ready workers
-            for slot in slots:
-                if slot.conn is None and todo:
-                    slot.start()
-                if slot.ready and slot.task is None and todo:
-                    index = todo.pop()
-                    src, ref = pairs[index]
-                    if not slot.assign(index, src, ref):
-                        todo.append(index)  # the worker died while idle: retry on a fresh one
+        while not results.complete:
+            _dispatch(slots, todo, pairs)
             live = [s for s in slots if s.conn is not None and (not s.ready or s.task is not None)]
             if not live:  # pragma: no cover - defensive: nothing running yet results missing
                 raise RuntimeError("runner stalled: no worker is running and pairs remain")
-            now = time.monotonic()
-            wait_s = max(0.0, min(s.deadline for s in live) - now)
-            ready_conns = wait([s.conn for s in live], timeout=min(wait_s, 1.0))
-            for slot in live:
-                if slot.conn not in ready_conns:
-                    continue
-                try:
-                    msg = slot.conn.recv()
-                except (EOFError, OSError):
-                    reason = slot.exit_description()
-                    if slot.task is None:
-                        raise RuntimeError(
-                            f"{desc}: {reason} while starting; if run_pairs is called from a script, "
-                            "guard the script's entry point with `if __name__ == '__main__':` "
-                            "(worker processes are started with multiprocessing's 'spawn')"
-                        ) from None
-                    record(slot.task, RegistrationResult.failure(reason, time.monotonic() - slot.started))
-                    slot.kill()
-                    continue
-                kind = msg[0]
-                if kind == "ready":
-                    slot.ready = True
-                    slot.deadline = math.inf
-                elif kind == "startup_error":
-                    _raise_startup_error(desc, *msg[1:])
-                else:  # "done"
-                    record(slot.task, msg[1])
-                    slot.task, slot.deadline = None, math.inf  # idle: no deadline until its next pair
-            # kill workers past their deadline
-            now = time.monotonic()
-            for slot in slots:
-                if slot.conn is None or now < slot.deadline:
-                    continue
-                if slot.task is None:
-                    raise RuntimeError(f"{desc}: worker did not start within {_STARTUP_TIMEOUT_S:g} s")
-                elapsed = now - slot.started
-                reason = f"timed out after {timeout_s:g} s (worker killed)"
-                record(slot.task, RegistrationResult.failure(reason, elapsed, timed_out=True))
-                slot.kill()
+            _collect(live, results, desc)
+            _time_out(slots, results, timeout_s, desc)
     finally:
         for slot in slots:  # let all workers exit in parallel, then reap them
             slot.request_stop()
         for slot in slots:
             slot.stop()
-        bar.close()
-    return results  # type: ignore[return-value]
+        results.bar.close()
+    return results.items  # type: ignore[return-value]
 
 
 def _run_serial(

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 from src.geometry.numpy_rigid import apply_transform, rigid_transform, rotation_angle
 
 # --------------------------------------------------------------------------------------

@@ -42,14 +42,14 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from baselines.methods import Method, display_name, get_method, method_of_network
-from benchmarks import tables
-from benchmarks.grid_plan import GRID_CONFIG
-from benchmarks.paper import EXPERIMENT_LABELS, canonical_experiment
+from benchmarks.tables import render as tables
+from benchmarks.grid.plan import GRID_CONFIG
+from benchmarks.tables.paper import EXPERIMENT_LABELS, canonical_experiment
 from src.compose import compose_experiment
-from src.errors import CheckpointError, ConfigError, exit_code_of
+from src.utils.errors import CheckpointError, ConfigError, exit_code_of
 from src.pair_sets import LOADER_KEYS
 from src.metrics import ERROR_R, ERROR_T, RMSE_R
-from src.paths import CONF_DIR, SHIPPED_DIR
+from src.utils.paths import CONF_DIR, SHIPPED_DIR
 
 METRICS = (ERROR_R, ERROR_T, RMSE_R)
 #: Data keys that change how the test set is loaded, not which pairs it holds (the cache folder does count).
@@ -111,7 +111,7 @@ def best_checkpoint(run_dir: Path) -> Path | None:
 
 def find_run(outputs: Path) -> Path:
     """The newest ``src.train`` run under ``outputs`` with a best checkpoint (the last started: its
-    ``config_resolved.yaml`` is written when a session starts)."""
+    ``config_resolved.yaml`` is written when a run starts or resumes)."""
     runs = [config for config in outputs.rglob("config_resolved.yaml") if best_checkpoint(config.parent)]
     if not runs:
         raise ConfigError(
@@ -222,7 +222,7 @@ def steps_run(run: Run) -> int | None:
 
 def run_entry(run: Run) -> Entry:
     """The row of the run's own best checkpoint."""
-    from src.checkpoint_io import read_checkpoint
+    from src.run.checkpoint_io import read_checkpoint
 
     checkpoint = read_checkpoint(run.checkpoint)
     network = checkpoint["hyper_parameters"]["network"]
@@ -332,12 +332,12 @@ def _group_config(cfg: DictConfig, entries: Sequence[Entry], output_dir: Path) -
 
 
 def compare(run: Run, entries: Sequence[Entry], cfg: DictConfig) -> tuple[Any, list[dict[str, Any]]]:
-    """Every entry on the run's test set through :func:`benchmarks.grid_run.run_grid`, one grid run per
+    """Every entry on the run's test set through :func:`benchmarks.grid.run.run_grid`, one grid run per
     checkpoint (the grid takes one per method); the tidy table (``method`` = the entry's label, rows in
     entry order) and the cells' summaries."""
     import pandas as pd
 
-    from benchmarks.grid_run import run_grid
+    from benchmarks.grid.run import run_grid
 
     groups: dict[Path | None, list[Entry]] = {}
     for entry in entries:
@@ -358,7 +358,7 @@ def compare(run: Run, entries: Sequence[Entry], cfg: DictConfig) -> tuple[Any, l
 
 
 def demo_table(tidy: Any, run: Run, notes: Sequence[str]) -> tables.Table:
-    """The demo's table for :func:`benchmarks.tables.to_markdown` / ``to_latex``: one row per method,
+    """The demo's table for :func:`benchmarks.tables.render.to_markdown` / ``to_latex``: one row per method,
     :data:`METRICS` and ms/pair (no ranking: the identity is the reference, not a competitor)."""
     metrics = [*METRICS, "ms/pair"]
     rows = []

@@ -1,7 +1,7 @@
 """Evaluate a shipped checkpoint on its experiment's fixed test set, next to ICP, from Python.
 
 Shows the pieces ``src.eval`` and the grid are made of: a checkpoint's card (``checkpoints/<name>.json``) names its
-experiment; ``benchmarks.grid.build_test_set`` gives that experiment's fixed test pairs (the ones
+experiment; ``src.pair_sets.build_test_set`` gives that experiment's fixed test pairs (the ones
 ``python -m src.eval +exp=<experiment>`` evaluates); ``get_registrator(<method>, checkpoint=...)`` registers them;
 ``src.metrics.RegistrationMetrics`` scores them with the paper's metrics. The default checkpoint was trained on the
 embedded synthetic data, which is built on first use (a few seconds, under $OMNET_CACHE_DIR).

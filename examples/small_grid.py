@@ -15,8 +15,10 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from benchmarks.grid import CONF_DIR, GRID_CONFIG, run_grid
-from benchmarks.tables import build_table, to_latex, to_markdown
+from benchmarks.grid.plan import GRID_CONFIG
+from benchmarks.grid.run import run_grid
+from src.utils.paths import CONF_DIR
+from benchmarks.tables.render import build_table, to_latex, to_markdown
 
 parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 parser.add_argument("--methods", default="icp,fgr", help="comma-separated keys of `python -m baselines`")

@@ -12,8 +12,8 @@ from collections.abc import Sequence
 from typing import Any
 
 from src.config import register_resolvers
-from src.errors import ConfigError
-from src.paths import CONF_DIR
+from src.utils.errors import ConfigError
+from src.utils.paths import CONF_DIR
 
 
 def compose_conf(overrides: Sequence[str]) -> Any:
@@ -35,7 +35,7 @@ def compose_model_config(model: str, model_scale: float, overrides: Sequence[str
 
 def compose_experiment(overrides: Sequence[str]) -> Any:
     """:func:`compose_conf` checked by :func:`src.validation.validate_config`; a bad override (an unknown
-    experiment named with the available ones) as one :class:`~src.errors.ConfigError` line."""
+    experiment named with the available ones) as one :class:`~src.utils.errors.ConfigError` line."""
     from hydra.errors import HydraException
 
     from src.validation import validate_config

@@ -7,8 +7,8 @@ import warnings
 
 from omegaconf import OmegaConf
 
-from src.errors import ConfigError
-from src.paths import shipped_checkpoint_path
+from src.utils.errors import ConfigError
+from src.utils.paths import shipped_checkpoint_path
 
 EULER_SEQ_BY_PARTIAL = {"prnet": "zyx", "rpmnet": "xyz", "none": "zyx"}
 
@@ -49,12 +49,20 @@ def register_resolvers() -> None:
     if not OmegaConf.has_resolver("loader_workers"):
         OmegaConf.register_new_resolver("loader_workers", loader_workers)
     if not OmegaConf.has_resolver("wandb_group"):
-        from src.wandb_logging import run_group
-
-        OmegaConf.register_new_resolver("wandb_group", run_group)
+        OmegaConf.register_new_resolver("wandb_group", sweep_group)
 
 
 # conf/hydra/launcher/{joblib,submitit_slurm}.yaml deliberately share their names with the launcher
 # plugins' configs (so `hydra/launcher=joblib|submitit_slurm` picks ours); they are complete on
 # their own, so Hydra's deprecated same-name schema matching is harmless: silence its warning.
 warnings.filterwarnings("ignore", message=r"(?s).*is validated against ConfigStore schema with the same name")
+
+
+def sweep_group() -> str | None:
+    """``logger.wandb.group``: a Hydra multirun's sweep folder (its jobs group together), else None."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return None
+    return str(HydraConfig.get().sweep.dir)

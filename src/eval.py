@@ -22,17 +22,17 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from src.checkpoint_io import check_checkpoint, read_checkpoint_network
+from src.run.checkpoint_io import check_checkpoint, read_checkpoint_network
 from src.config import register_resolvers
-from src.errors import CheckpointError, ConfigError
-from src.failures import job_main
+from src.utils.errors import CheckpointError, ConfigError
+from src.run.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
-from src.paths import CONF_DIR
-from src.recorded import refuse_unread_overrides, refuse_unused_in_eval
-from src.reporting import report_test_metrics, save_resolved_config
-from src.evaluated import evaluated_record
-from src.trainer import build_trainer
+from src.utils.paths import CONF_DIR
+from src.run.recorded import refuse_unread_overrides, refuse_unused_in_eval
+from src.run.reporting import report_test_metrics, save_resolved_config
+from src.run.evaluated import evaluated_record
+from src.run.trainer import build_trainer
 
 register_resolvers()
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 def load_checkpoint(path: str, cfg: DictConfig) -> RegistrationModule:
     """Load a RegistrationModule checkpoint, checking it holds the configured network and that no
-    model override is lost (src/recorded.py); the metric convention is the experiment's."""
+    model override is lost (src/run/recorded.py); the metric convention is the experiment's."""
     refuse_unused_in_eval(cfg, check_checkpoint(path, cfg.model.network._target_), path)
     convention = {"euler_seq": cfg.model.euler_seq} if cfg.model.get("euler_seq") else {}
     return RegistrationModule.load_from_checkpoint(path, map_location="cpu", **convention)

@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from src.compose import compose_experiment
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.geometry.clouds import check_cloud
 
 #: Data-loader settings: they change how the pairs are loaded, not which pairs (not part of a test set's definition).

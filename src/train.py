@@ -11,7 +11,7 @@ A failing job writes ``failure.json`` into its run dir; ``on_failure=auto`` (def
 with the sweep in a multirun and re-raises in a single run (``record`` / ``raise`` to force).
 
 Refused in one ``error:`` line before training: ModelNet40 (the paper's experiments' data) never prepared
-(:func:`src.run_info.require_prepared_paper_data`); a checkpoint to resume that is missing, unreadable,
+(:func:`src.run.info.require_prepared_paper_data`); a checkpoint to resume that is missing, unreadable,
 of another network or weights-only; a training set smaller than one batch; a value the network
 rejects. After training: a run that made no optimisation step (nothing to test).
 """
@@ -27,15 +27,15 @@ import lightning as L
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
-from src.checkpoint_io import check_checkpoint, read_checkpoint
+from src.run.checkpoint_io import check_checkpoint, read_checkpoint
 from src.config import register_resolvers
-from src.errors import ConfigError
-from src.failures import job_main
-from src.recorded import refuse_unread_overrides, refuse_unused_in_train
-from src.reporting import report_test_metrics, save_resolved_config
-from src.run_info import require_prepared_paper_data
-from src.evaluated import evaluated_record
-from src.trainer import build_trainer
+from src.utils.errors import ConfigError
+from src.run.failures import job_main
+from src.run.recorded import refuse_unread_overrides, refuse_unused_in_train
+from src.run.reporting import report_test_metrics, save_resolved_config
+from src.run.info import require_prepared_paper_data
+from src.run.evaluated import evaluated_record
+from src.run.trainer import build_trainer
 
 register_resolvers()
 # The datamodule, not the loader, carries the mid-epoch data position (RegistrationDataModule.state_dict).

@@ -1,9 +1,9 @@
 """One schema check of a composed config: types, ranges and choices of the data and model fields.
 
 :func:`validate_config` runs before a job touches anything (``src.train`` and ``src.eval`` through
-:func:`src.failures.record_failures`, ``benchmarks.grid`` for each experiment it composes), so a
+:func:`src.run.failures.record_failures`, ``benchmarks.grid`` for each experiment it composes), so a
 value such as ``data.pair.noise_sigma=-1`` or ``data.batch_size=abc`` stops with one
-:class:`~src.errors.ConfigError` line naming the key, the rule and the value, instead of running
+:class:`~src.utils.errors.ConfigError` line naming the key, the rule and the value, instead of running
 with a silently different setting or failing deep inside with a traceback.
 
 :data:`RULES` is the one table: dotted key -> :class:`Rule`. A rule applies when its key is in the
@@ -21,8 +21,9 @@ import difflib
 import functools
 import inspect
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import hydra
@@ -30,9 +31,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from src.data.transforms import NORMALS, PARTIAL_MANNERS, PERTURBATIONS, SAMPLINGS
-from src.errors import ConfigError, user_error_behind
+from src.utils.errors import ConfigError, user_error_behind
 from src.geometry.clouds import MIN_POINTS
-from src.paths import REPO_ROOT
+from src.utils.paths import REPO_ROOT
 
 CONF_DIR = REPO_ROOT / "conf"
 

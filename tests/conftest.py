@@ -5,7 +5,7 @@ pyproject.toml, skipped here in one place:
 
 - ``slow``: runs only with ``--run-slow``;
 - ``shared_data("data/<file>", ...)``: skipped when a named file of the shared folder
-  (:func:`src.paths.shared_path`: ``../shared`` or ``$OMNET_SHARED_DIR``) is absent;
+  (:func:`src.utils.paths.shared_path`: ``../shared`` or ``$OMNET_SHARED_DIR``) is absent;
 - ``goicp``: skipped when the optional Go-ICP extension cannot be imported.
 
 Plain helpers (archive writers, meshes, configs) are in :mod:`tests.helpers`.

@@ -12,7 +12,7 @@ import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive
 from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, search_param, to_pcd
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 
 @dataclass

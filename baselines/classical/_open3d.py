@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 #: How estimated normals are signed (Open3D's PCA normals have an arbitrary sign).
 NORMAL_ORIENTATIONS = ("centroid", "none", "origin")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 from typing import Any, ClassVar
 
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 #: The extra of ``pyproject.toml`` that installs every optional package of the classical baselines.
 EXTRA = 'pip install -e ".[classical]"'

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive, _within
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from src.geometry.numpy_rigid import project_to_rotation, rigid_transform
 
 INSTALL_HINT = "bash baselines/classical/install_goicp.sh"

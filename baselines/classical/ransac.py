@@ -23,7 +23,7 @@ import numpy as np
 from baselines.base import _positive, _within
 from baselines.classical._features import FPFHConfig, FPFHMatcher
 from baselines.classical.icp import ICP
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from src.geometry.numpy_rigid import apply_transform
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive
 from baselines.classical._optional import NeedsPackage
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 REGISTRATION_TYPES = ("GICP", "VGICP")
 

@@ -25,7 +25,7 @@ import numpy as np
 from baselines.registry import get_registrator
 from baselines.runner import run_pairs
 from baselines.testing import rotation_error_deg, translation_error
-from src.errors import UserError
+from src.utils.errors import UserError
 
 EXPERIMENT = "real_airplane"
 NOISE_SIGMA = 0.01

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from baselines.base import Registrator, RegistratorConfig, _positive
 from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, to_pcd
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from src.geometry.numpy_rigid import apply_transform, project_to_rotation, rigid_transform, rotation_angle
 
 

@@ -16,7 +16,7 @@ must hold the method's network (``Method.network``, also ``model.network._target
 Each method takes ``checkpoint=PATH`` or ``weights=official:<name>`` (published weights imported
 by :mod:`baselines.learned.published`, e.g. ``get_registrator("dcp", weights="official:dcp_v1")``, or
 the path of such a file); a missing file, an unreadable one, or weights of another network than the
-method name says raise :class:`~src.errors.CheckpointError` (one line) when the registrator is
+method name says raise :class:`~src.utils.errors.CheckpointError` (one line) when the registrator is
 built, so a grid fails before it starts. The weights themselves are loaded lazily
 (:meth:`LearnedRegistrator.setup`), so the object stays cheap to build and to pickle.
 
@@ -42,9 +42,9 @@ from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
-from src.errors import CheckpointError, ConfigError
+from src.utils.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
-from src.paths import SHIPPED_DIR
+from src.utils.paths import SHIPPED_DIR
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "run_batches"]
 
@@ -150,7 +150,7 @@ class LearnedRegistrator(Registrator):
             cfg.checkpoint = str(shipped_checkpoint(self.name, self.network_target))
             self.shipped = Path(cfg.checkpoint).stem
             log.info("%s: no checkpoint given, using the shipped %s", self.name, cfg.checkpoint)
-        from src.checkpoint_io import read_checkpoint_network  # here: keeps `import baselines` light
+        from src.run.checkpoint_io import read_checkpoint_network  # here: keeps `import baselines` light
 
         found = read_checkpoint_network(cfg.checkpoint)
         if found != self.network_target:

@@ -1,7 +1,7 @@
 """Weights published by other projects, imported into this framework's networks.
 
 :data:`PUBLISHED` (the records of ``published.yaml``) names every known file (``official:<name>``): where it lies (``../shared/weights/``,
-:func:`src.paths.shared_path`), its sha256, the network it fits (a ``conf/model`` config plus
+:func:`src.utils.paths.shared_path`), its sha256, the network it fits (a ``conf/model`` config plus
 overrides), the protocol it was trained under (``conf/exp/<protocol>.yaml``), what its authors report
 and its license. ``weights=`` accepts such a name or the path of a file of a known layout: a file named as a registered one is
 checked against its sha256; another one gets the layout's registry entry's network and is recorded as
@@ -9,7 +9,7 @@ unverified (``module.hparams["weights"]["verified"]``).
 
 The file's state dict is mapped onto our network by its layout's converter
 (:mod:`baselines.learned.weight_converters`, strict). A file of another layout, an unreadable file, a wrong
-checksum or an unknown name raise one-line :class:`~src.errors.CheckpointError` / ConfigError.
+checksum or an unknown name raise one-line :class:`~src.utils.errors.CheckpointError` / ConfigError.
 
     >>> from baselines.learned.published import published_module
     >>> module = published_module("official:dcp_v1")             # a RegistrationModule, eval mode
@@ -30,9 +30,9 @@ from baselines.learned.weight_converters import convert, detect_layout, read_sta
 from baselines.methods import learned_methods
 from src.compose import compose_model_config
 from src.data.cache import file_sha256
-from src.errors import CheckpointError, ConfigError
-from src.paths import shared_path
-from src.records import load_records
+from src.utils.errors import CheckpointError, ConfigError
+from src.utils.paths import shared_path
+from src.utils.records import load_records
 
 OFFICIAL = "official:"
 

@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import estimate_normals, ppf_features, sinkhorn, soft_correspondence_svd
 from baselines.learned.common.layers import MLP
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.geometry import se3_apply
 from src.models.base import scaled
 

@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from src.data.datasets import DATASET_NAMES, get_dataset
-from src.errors import DatasetError
-from src.files import disk_error, disk_errors, preallocate
+from src.utils.errors import DatasetError
+from src.utils.files import disk_error, disk_errors, preallocate
 
 FORMAT_VERSION = 2
 """2: ``content_hash`` covers the whole manifest; ``source`` holds ``paths`` and ``fingerprints``."""
@@ -231,7 +231,7 @@ class CacheWriter:
 
     ``manifest_fields`` holds :data:`REQUIRED_FIELDS` and optionally ``missing_splits``.
     Use as a context manager: an exception discards the temporary folder (a full disk or a folder
-    without write permission then raises one :class:`~src.errors.DiskError` line). The memory-mapped
+    without write permission then raises one :class:`~src.utils.errors.DiskError` line). The memory-mapped
     arrays are preallocated, so a full disk fails when a split is added, never by ``SIGBUS`` mid-write.
     """
 

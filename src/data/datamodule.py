@@ -19,8 +19,8 @@ from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardS
 from src.data.prepare import ensure_cache
 from src.data.pipelines import build_pair_transforms
 from src.data.transforms import NORMALS
-from src.errors import ConfigError, DatasetError
-from src.signals import loader_worker_init
+from src.utils.errors import ConfigError, DatasetError
+from src.utils.interrupts import loader_worker_init
 
 STAGES = ("train", "val", "test")
 

@@ -11,7 +11,7 @@ import torch.distributed as dist
 from torch.utils.data import Dataset, Sampler
 
 from src.data.transforms import CLOUDS, Compose
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.geometry.clouds import check_cloud
 
 TRAIN_STREAM, EVAL_STREAM = 1, 0

@@ -12,7 +12,7 @@ that each record has its ``conf/data/<name>.yaml`` and that they agree.
 
 Adding a dataset means adding its record here, its reader (a new layout) and its config.
 
-Light on purpose: importing it imports nothing but :mod:`src.errors`.
+Light on purpose: importing it imports nothing but :mod:`src.utils.errors`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 
 @dataclass(frozen=True)

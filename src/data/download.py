@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from src.data.cache import file_sha256
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 _CONTENT_RANGE = re.compile(r"bytes (\d+)-")
 

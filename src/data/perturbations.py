@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from src.data.transforms import Compose, GaussianNoise, PickPair, Sample, Shuffle, Transform, move_cloud
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from src.geometry.numpy_rigid import twist_matrix
 
 

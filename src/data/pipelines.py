@@ -18,7 +18,7 @@ from src.data.transforms import (
     Shuffle,
     Transform,
 )
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 
 def build_pair_transforms(

@@ -6,7 +6,7 @@
 * ``.xyz``, ``.txt``, ``.csv``, ``.pts``: text, one point per line, the first three numbers of a line
   (spaces or commas) are x y z; lines starting with ``#`` and non-numeric header lines are skipped.
 
-Every reader returns ``(N, 3)`` float64 and raises one-line :class:`~src.errors.DatasetError` for what
+Every reader returns ``(N, 3)`` float64 and raises one-line :class:`~src.utils.errors.DatasetError` for what
 it cannot read.
 """
 
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from src.data.scans import parse_ply_points
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 TEXT_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
 SUFFIXES = (".ply", ".pcd", *TEXT_SUFFIXES)

@@ -49,8 +49,8 @@ from src.data.readers import (
     READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, check_split_identities, layout_of,
 )
 from src.data.sampling import METHOD, NORMALIZATION, sample_shape
-from src.errors import DatasetError, exit_code_of
-from src.files import disk_errors
+from src.utils.errors import DatasetError, exit_code_of
+from src.utils.files import disk_errors
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,7 @@ import numpy as np
 from src.data.categories import MODELNET40_CATEGORIES
 from src.data.datasets import read_sources
 from src.data.mesh import MeshShape
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 LAYOUTS: tuple[str, ...] = tuple(s.layout for s in read_sources())
 SPLITS: tuple[str, ...] = ("train", "test")

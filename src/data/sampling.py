@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from src.data.mesh import MeshShape
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 NORMALIZATION = "bbox_center_unit_sphere"
 """Name recorded in cache manifests for :func:`normalize_mesh`."""

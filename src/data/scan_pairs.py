@@ -28,9 +28,9 @@ from torch.utils.data import DataLoader, Dataset
 from src.data.dataset import EVAL_STREAM, float_tensor
 from src.data.scans import ScanPair, ScanSource, normalise_pair, read_scans, scan_pairs
 from src.data.transforms import Compose, RandomRigidTransform, Resample
-from src.errors import ConfigError, DatasetError
+from src.utils.errors import ConfigError, DatasetError
 from src.geometry.clouds import check_cloud
-from src.paths import shared_path
+from src.utils.paths import shared_path
 
 DEFAULT_SOURCE = ("data", "stanford", "stanford_bunny_scans.zip")
 """The Stanford Bunny's 10 range scans and bun.conf, inside the shared folder."""

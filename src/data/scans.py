@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from src.data.readers import Archive
 from src.data.transforms import median_spacing, overlap_fraction
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 from src.geometry.numpy_rigid import apply_transform, inverse_transform, rigid_transform
 
 BMESH_FORMAT = "'bmesh <file> tx ty tz qx qy qz qw'"

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from src.data.mesh import MeshShape
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 _TAU = 2.0 * np.pi
 _STRETCH = 0.15

@@ -23,7 +23,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from src.errors import ConfigError, DatasetError
+from src.utils.errors import ConfigError, DatasetError
 from src.geometry.numpy_rigid import apply_transform, euler_transform, inverse_transform
 
 Sample = dict[str, Any]

@@ -2,7 +2,7 @@
 :mod:`src.data.scan_pairs`), every registration method (:mod:`baselines.base`) and the grid's test sets.
 
 They take NumPy arrays, torch tensors (on any device; recognised without importing torch) or nested
-lists, and refuse a bad cloud with one line, a :class:`~src.errors.PointCloudError` that starts with the
+lists, and refuse a bad cloud with one line, a :class:`~src.utils.errors.PointCloudError` that starts with the
 cloud's name: not real numbers (bool, complex, object or text arrays are refused, never converted), not
 (N, 3), fewer than :data:`MIN_POINTS` points, NaN or infinite coordinates, and (unless allowed) all points
 on one line, within the precision of the input's own dtype (a line stored in float32 is a line).
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from src.errors import PointCloudError
+from src.utils.errors import PointCloudError
 
 #: Fewest points a cloud may have: a rigid transform is not determined by fewer than 3.
 MIN_POINTS = 3

@@ -20,7 +20,7 @@ from typing import Protocol, runtime_checkable
 
 from torch import Tensor
 
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 
 @runtime_checkable

@@ -17,7 +17,7 @@ from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
 from torchmetrics import MeanMetric
 
-from src.errors import ConfigError, DivergenceError
+from src.utils.errors import ConfigError, DivergenceError
 from src.metrics import SCORE, RegistrationMetrics
 from src.models.base import check_network
 

@@ -21,10 +21,10 @@ from typing import Any
 import torch
 import yaml
 
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 from src.models.module import RegistrationModule
-from src.paths import SHIPPED_DIR, without_folder
-from src.reporting import read_csv_logs
+from src.utils.paths import SHIPPED_DIR, without_folder
+from src.run.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 
 IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
@@ -116,7 +116,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
         "training": {
             "step_of_checkpoint": int(full["global_step"]),
             "steps_run": results.get("global_step"),
-            "fit_seconds_last_session": results.get("fit_seconds"),
+            "fit_seconds_last_process": results.get("fit_seconds"),
             "resumed_from": results.get("resumed_from"),
             "batch_size": config["data"]["batch_size"],
             "optimizer": {k: hyper_parameters[k] for k in ("lr", "weight_decay", "scheduler")},

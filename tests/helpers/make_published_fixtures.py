@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from src.paths import shared_path
+from src.utils.paths import shared_path
 from tests.helpers.paths import FIXTURES
 SHAPES = (3, 7)  # train ids airplane_0004 and airplane_0008 of the cache
 

@@ -2,7 +2,7 @@
 
 - ``slow``: skipped unless pytest runs with ``--run-slow``;
 - ``shared_data("data/<file>", ...)``: skipped when one of the named files or folders of the shared
-  folder (:func:`src.paths.shared_path`: ``../shared``, or ``$OMNET_SHARED_DIR``) is absent;
+  folder (:func:`src.utils.paths.shared_path`: ``../shared``, or ``$OMNET_SHARED_DIR``) is absent;
 - ``goicp``: skipped when the optional Go-ICP extension cannot be imported.
 """
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from src.paths import shared_dir, shared_path
+from src.utils.paths import shared_dir, shared_path
 
 GOICP_MISSING = "optional Go-ICP extension not installed: run baselines/classical/install_goicp.sh"
 

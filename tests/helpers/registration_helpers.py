@@ -200,13 +200,13 @@ class KillAt(L.Callback):
 
 class PauseAt(L.Callback):
     """At the start of training step ``step``: touch ``ready`` and wait (at most a minute) until the
-    run's :class:`~src.signals.CheckpointOnSignal` has received a signal sent from outside."""
+    run's :class:`~src.run.signals.CheckpointOnSignal` has received a signal sent from outside."""
 
     def __init__(self, step: int, ready: str) -> None:
         self.step, self.ready = step, Path(ready)
 
     def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
-        from src.signals import CheckpointOnSignal
+        from src.run.signals import CheckpointOnSignal
 
         if trainer.global_step != self.step:
             return

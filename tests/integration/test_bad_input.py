@@ -1,4 +1,4 @@
-"""Bad input never gives a wrong result (issue 16): config values checked at composition, training
+"""Bad input never gives a wrong result: config values checked at composition, training
 that would train nothing, checkpoints to resume from, and checkpoint files of killed saves."""
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import torch
 
 import src.eval
 import src.train
-from src.errors import CheckpointError, ConfigError
-from src.files import remove_stale_temporaries, write_atomic
+from src.utils.errors import CheckpointError, ConfigError
+from src.utils.files import remove_stale_temporaries, write_atomic
 from src.models.base import check_network
 from src.train import train
-from src.trainer import build_trainer
+from src.run.trainer import build_trainer
 from src.data.datamodule import check_pair_layout
 from src.validation import validate_config
 from tests.helpers.registration_helpers import CONF, TINY, compose_config
@@ -219,7 +219,7 @@ import os, shutil, signal, sys
 import torch
 from hydra import compose, initialize_config_dir
 from src.config import register_resolvers
-from src.trainer import build_trainer
+from src.run.trainer import build_trainer
 register_resolvers()
 with initialize_config_dir(config_dir=sys.argv[1], version_base="1.3"):
     cfg = compose("config", overrides=["trainer.accelerator=cpu", "output_dir=" + sys.argv[2]])
@@ -258,7 +258,7 @@ def test_write_atomic_removes_its_temporary_on_failure_and_live_temporaries_stay
     assert remove_stale_temporaries(tmp_path) == [] and mine.exists()
 
 
-# --- what is recorded is what ran (issue 22) ----------------------------------------------------------
+# --- what is recorded is what ran ----------------------------------------------------------
 
 
 def test_an_fp16_precision_on_the_cpu_is_refused():
@@ -278,7 +278,7 @@ def test_an_fp16_precision_on_the_cpu_is_refused():
                                          "the network from {ckpt}, which has model.network.share_weights=False"),
 ])
 def test_eval_refuses_overrides_the_checkpoint_overrides(override, message, tmp_path, cache):
-    from src.recorded import refuse_unused_in_eval
+    from src.run.recorded import refuse_unused_in_eval
 
     cfg = _tiny(cache, tmp_path, override, f"ckpt_path={SHIPPED}")
     hparams = torch.load(SHIPPED, map_location="cpu", weights_only=False, mmap=True)["hyper_parameters"]
@@ -300,7 +300,7 @@ def test_train_refuses_weights(tmp_path, cache):
         train(_tiny(cache, tmp_path, "weights=official:dcp_v1"))
 
 
-# --- accepted but not used (issue 22 §1) ----------------------------------------------------------------
+# --- accepted but not used ----------------------------------------------------------------
 
 #: A Hydra app run in this process leaves its logging alone (its handlers would hold capsys's closed stderr).
 NO_LOGGING = ["hydra/job_logging=none", "hydra/hydra_logging=none"]
@@ -372,7 +372,7 @@ def test_a_pair_size_the_cache_layout_cannot_honour_is_refused(tmp_path, cache):
                                          "than scan_pairs, and this run has data.dataset=scan_pairs"),
 ])
 def test_overrides_the_pair_pipeline_does_not_read_are_refused(overrides, message):
-    from src.recorded import refuse_unread_overrides
+    from src.run.recorded import refuse_unread_overrides
 
     with pytest.raises(ConfigError) as info:
         refuse_unread_overrides(compose_config(*overrides), overrides=overrides)
@@ -401,7 +401,7 @@ def test_src_train_refuses_an_override_it_does_not_read(tmp_path, monkeypatch, c
     ("+callbacks.checkpoint.save_top_k=0", "callbacks.checkpoint.save_top_k=0 keeps no checkpoint selected on val/score"),
 ])
 def test_train_refuses_a_checkpoint_selection_that_cannot_select(override, message, tmp_path, cache):
-    from src.recorded import refuse_unused_in_train
+    from src.run.recorded import refuse_unused_in_train
 
     with pytest.raises(ConfigError) as info:
         train(_tiny(cache, tmp_path, override))

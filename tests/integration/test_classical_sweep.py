@@ -6,7 +6,7 @@ import pytest
 
 from baselines.classical import sweep
 from src.data.prepare import prepare
-from src.paths import shared_path
+from src.utils.paths import shared_path
 from tests.helpers.registration_helpers import compose_config
 
 ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")

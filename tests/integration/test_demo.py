@@ -22,7 +22,7 @@ from benchmarks.demo import (
     pipeline_check_note,
     run_demo,
 )
-from benchmarks.latex_check import check_latex, tabular_rows, tabulars
+from benchmarks.tables.latex_check import check_latex, tabular_rows, tabulars
 from src.eval import evaluate
 from src.models.pretrained import export
 from src.train import train
@@ -182,7 +182,7 @@ def test_a_run_that_does_not_beat_the_identity_is_labelled_a_pipeline_check(run_
     """With the shipped card: its budget, its CPU hours and the step its validation first beat the identity."""
     run = load_run(run_dir)
     mine = Entry("omnet", "OMNet (this run)")
-    card = {"name": "shipped_x", "note": "... one thread, 1.5 CPU hours in two sessions ...",
+    card = {"name": "shipped_x", "note": "... one thread, 1.5 CPU hours in two resumed runs ...",
             "training": {"steps_run": 600, "batch_size": 16,
                          "validation": [{"step": 199, "Error(R)": 50.0}, {"step": 399, "Error(R)": 35.0},
                                         {"step": 599, "Error(R)": 30.0}]}}

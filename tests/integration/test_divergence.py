@@ -8,7 +8,7 @@ import lightning as L
 import pytest
 import torch
 
-from src.errors import DivergenceError
+from src.utils.errors import DivergenceError
 from src.train import train
 from tests.helpers.registration_helpers import last_weights, tiny_config
 

@@ -1,5 +1,5 @@
-"""The README is the front door: its relative links and those of docs/ resolve, and every page of docs/ is
-reachable from it."""
+"""The README is the front door: its relative links and those of docs/ and benchmarks/ resolve, and every page
+of docs/ is reachable from it."""
 
 from __future__ import annotations
 
@@ -21,7 +21,8 @@ def relative_links(page: Path) -> list[tuple[str, Path]]:
 
 
 def pages() -> list[Path]:
-    return [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    """The README, docs/, and the result and study pages under benchmarks/."""
+    return [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "benchmarks").rglob("*.md"))]
 
 
 def test_every_relative_link_resolves():

@@ -8,7 +8,7 @@ import sys
 import pytest
 import torch
 
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 from src.eval import evaluate
 from src.train import train
 from tests.helpers.registration_helpers import tiny_config

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from src.errors import CheckpointError, ConfigError
+from src.utils.errors import CheckpointError, ConfigError
 from src.train import train
 from tests.helpers.registration_helpers import RESUME_RUN, last_weights, tiny_config
 
@@ -65,8 +65,8 @@ def test_eval_refuses_init_weights(start):
 
 
 def test_each_validation_logs_the_process_mm_rate(start):
-    """The yardstick of a CPU hour on a shared machine (src.callbacks.TrainingClock)."""
-    from src.reporting import read_csv_logs
+    """The yardstick of a CPU hour on a shared machine (src.run.callbacks.TrainingClock)."""
+    from src.run.reporting import read_csv_logs
 
     tmp, _ = start
     rates = read_csv_logs(tmp / "start")["time/mm_gflops"].dropna()

@@ -8,8 +8,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from benchmarks.latex_check import check_latex, latex_failure
-from benchmarks.tables import LATEX_PACKAGES, build_table, main, to_latex
+from benchmarks.tables.latex_check import check_latex, latex_failure
+from benchmarks.tables.render import LATEX_PACKAGES, build_table, main, to_latex
 
 MISSING_BOOKTABS = "! LaTeX Error: File `booktabs.sty' not found.\n\nType X to quit or <RETURN> to proceed,"
 

@@ -1,6 +1,6 @@
 """The import contracts of pyproject.toml ([tool.importlinter]): the layers benchmarks > baselines > src
-only point down (an import inside a function counts too), and the modules of src and baselines import
-each other in no cycle."""
+and the layers inside src only point down (an import inside a function counts too), no product module
+imports a study (``benchmarks/studies/``), and the modules of a package import each other in no cycle."""
 
 from __future__ import annotations
 
@@ -35,8 +35,26 @@ def test_the_contract_names_the_layers_top_down():
     config = _config()
     assert set(config["root_packages"]) == {"src", "baselines", "benchmarks"}
     layers = [c for c in config["contracts"] if c["type"] == "layers"]
-    assert [c["layers"] for c in layers] == [["benchmarks", "baselines", "src"]]
+    assert layers[0]["layers"] == ["benchmarks", "baselines", "src"]
     assert not any(c.get("ignore_imports") for c in config["contracts"])
+
+
+def test_every_package_of_src_has_its_layer():
+    """A new subpackage or top-level module of src must be placed in the src layers contract."""
+    inner = next(c for c in _config()["contracts"] if c["type"] == "layers" and c["layers"][-1] == "src.utils")
+    named = {name.strip() for layer in inner["layers"] for name in layer.split("|")}
+    present = {f"src.{p.stem if p.suffix else p.name}" for p in (ROOT / "src").iterdir()
+               if (p.suffix == ".py" and p.stem != "__init__") or (p / "__init__.py").is_file()}
+    assert present == named
+
+
+def test_every_product_package_of_benchmarks_is_forbidden_the_studies():
+    """The studies contract lists every product module of benchmarks (a new one would escape it otherwise)."""
+    contract = next(c for c in _config()["contracts"] if c.get("forbidden_modules") == ["benchmarks.studies"])
+    product = {f"benchmarks.{p.stem if p.suffix else p.name}" for p in (ROOT / "benchmarks").iterdir()
+               if ((p.suffix == ".py" and p.stem != "__init__") or (p / "__init__.py").is_file()) and p.name != "studies"}
+    assert product <= set(contract["source_modules"])
+    assert {"src", "baselines"} <= set(contract["source_modules"])
 
 
 def test_the_import_contracts_are_kept():

@@ -1,5 +1,5 @@
 """No machine's own paths in the repository: source, configs, docs and tests name paths relative to
-the repository (``src.paths``), through ``$OMNET_CACHE_DIR`` / ``$OMNET_SHARED_DIR``, or under ``/tmp``."""
+the repository (``src.utils.paths``), through ``$OMNET_CACHE_DIR`` / ``$OMNET_SHARED_DIR``, or under ``/tmp``."""
 
 from __future__ import annotations
 

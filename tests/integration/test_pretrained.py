@@ -8,7 +8,7 @@ import shutil
 import pytest
 import torch
 
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 from src.eval import evaluate
 from src.models.module import RegistrationModule
 from src.models.pretrained import SHIPPED_DIR, export, find_shipped, main
@@ -30,7 +30,7 @@ def test_export_writes_weights_only_checkpoint_and_card(run_dir, tmp_path):
     target = export(run_dir, "tiny", tmp_path, note="test export")
     card = json.loads((tmp_path / "tiny.json").read_text())
     assert card["experiment"] | IDENTITY == card["experiment"] and card["note"] == "test export"
-    assert card["training"]["steps_run"] == 2 and card["training"]["fit_seconds_last_session"] > 0
+    assert card["training"]["steps_run"] == 2 and card["training"]["fit_seconds_last_process"] > 0
     assert [row["step"] for row in card["training"]["validation"]] == [0, 1]
     assert set(card["metrics"]["test"]) >= {"Error(R)", "Error(t)"}
     saved = torch.load(target, weights_only=False)
@@ -118,7 +118,7 @@ def test_eval_finds_the_model_of_every_shipped_checkpoint(shipped):
     from omegaconf import OmegaConf
 
     from src.eval import model_of_checkpoint
-    from src.paths import CONF_DIR
+    from src.utils.paths import CONF_DIR
 
     args = ["+exp=real_airplane", f"ckpt_path={shipped}"]
     added = model_of_checkpoint(args)

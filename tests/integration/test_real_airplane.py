@@ -11,8 +11,8 @@ from torch.utils.data import DataLoader
 
 from src.config import register_resolvers
 from src.data.prepare import prepare
-from src.errors import DatasetError
-from src.paths import REPO_ROOT, shared_path
+from src.utils.errors import DatasetError
+from src.utils.paths import REPO_ROOT, shared_path
 
 ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 BATHTUB_ZIP = shared_path("data", "modelnet40_normal_resampled_bathtub.zip")

@@ -13,7 +13,7 @@ from baselines import get_registrator
 from baselines.__main__ import main
 from src.data.point_files import read_points, write_ply
 from src.data.scans import parse_conf, relative_pose
-from src.paths import shared_path
+from src.utils.paths import shared_path
 
 SCANS = shared_path("data", "stanford", "stanford_bunny_scans.zip")
 MEMBERS = "bunny_scans/data/"

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import torch
 
-from src.callbacks import RngState, set_rng_states
+from src.run.callbacks import RngState, set_rng_states
 from src.data.dataset import EpochSampler
-from src.errors import CheckpointError, ConfigError
-from src.reporting import read_csv_logs
+from src.utils.errors import CheckpointError, ConfigError
+from src.run.reporting import read_csv_logs
 import src.train
 from src.train import train
 from tests.helpers.registration_helpers import (
@@ -33,7 +33,7 @@ from tests.helpers.registration_helpers import (
 )
 
 # 14 synthetic train shapes at batch 2, last.ckpt after every step (RESUME_RUN); the interrupted run is
-# killed (an exception) at the start of step `stop`, as a device session's time limit would.
+# killed (an exception) at the start of step `stop`, as a job's time limit would.
 
 
 def _tag(overrides: tuple[str, ...]) -> str:
@@ -56,7 +56,7 @@ def _interrupted(tmp, stop: int, *extra: str) -> tuple[dict[str, torch.Tensor], 
     """Weights at the interruption and at the end of the run resumed in the same run directory."""
     run = tmp / f"run{stop}{_tag(extra)}"
     weights = killed_and_resumed(tmp, run, stop, *RESUME_RUN, *extra, f"trainer.max_steps={RESUME_STEPS}")
-    logs = read_csv_logs(run)  # both sessions' logs are kept, one CSV version each
+    logs = read_csv_logs(run)  # both runs' logs are kept, one CSV version each
     assert len(list((run / "csv").glob("version_*"))) == 2 and logs["step"].min() < stop <= logs["step"].max()
     assert logs["time/cpu_hours"].max() > 0  # the default callbacks' TrainingClock
     return weights

@@ -11,8 +11,8 @@ import pytest
 
 import hydra
 from src.config import loader_workers
-from src.run_info import TrainingForecast, format_duration
-from src.evaluated import PairCounter, evaluated_record
+from src.run.info import TrainingForecast, format_duration
+from src.run.evaluated import PairCounter, evaluated_record
 from tests.helpers.registration_helpers import TINY, compose_config
 
 PAPER_EXPERIMENTS = ("unseen_shapes", "unseen_categories", "gaussian_noise")
@@ -93,7 +93,7 @@ def test_the_estimate_of_a_paper_scale_cpu_schedule_says_how_long_and_how_to_siz
 
 
 def test_a_run_without_a_step_limit_is_told_what_stops_it():
-    """max_steps=-1 and max_epochs=-1 (a run stopped by time or a signal: benchmarks.gpu_study): the estimate
+    """max_steps=-1 and max_epochs=-1 (a run stopped by time or a signal: benchmarks.studies.gpu_study.study): the estimate
     crashed on Lightning's infinite step count (OverflowError)."""
     omnet = SimpleNamespace(network=type("OMNet", (), {})())
     line = TrainingForecast(after_steps=10).forecast(_trainer(float("inf"), 11), omnet, 0.5)

@@ -11,8 +11,8 @@ import time
 import pytest
 from omegaconf import OmegaConf
 
-from src.errors import exit_on_user_error
-from src.failures import record_failures
+from src.utils.errors import exit_on_user_error
+from src.run.failures import record_failures
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])

@@ -22,11 +22,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from benchmarks.collect import collect, main as collect_main
-from benchmarks.latex_check import check_latex, compile_latex, tabular_rows, tabulars
-from benchmarks.tables import build_table, fmt, to_latex, to_markdown
+from benchmarks.tables.latex_check import check_latex, compile_latex, tabular_rows, tabulars
+from benchmarks.tables.render import build_table, fmt, to_latex, to_markdown
 from src.config import register_resolvers
 from src.eval import evaluate
-from src.reporting import read_csv_logs
+from src.run.reporting import read_csv_logs
 from src.train import train
 from tests.helpers.markdown import markdown_table
 from tests.helpers.registration_helpers import TINY
@@ -245,7 +245,7 @@ def test_launcher_configs_compose_and_instantiate():
 
     base = _compose(hydra_cfg=True)
     assert base.hydra.launcher._target_.endswith("BasicLauncher")
-    assert base.hydra.callbacks.failure_summary._target_ == "src.failures.FailureSummary"
+    assert base.hydra.callbacks.failure_summary._target_ == "src.run.failures.FailureSummary"
     joblib = _compose("hydra/launcher=joblib", hydra_cfg=True).hydra.launcher
     assert joblib._target_.endswith("JoblibLauncher") and joblib.n_jobs == 2
     slurm = _compose("hydra/launcher=submitit_slurm", "trainer=ddp", "trainer.devices=4", "trainer.num_nodes=2",
@@ -265,7 +265,7 @@ def test_ddp_trainer_config():
 
 
 def test_on_failure_record_and_raise_in_process(tmp_path, monkeypatch):
-    from src.failures import record_failures, resolve_on_failure
+    from src.run.failures import record_failures, resolve_on_failure
 
     def boom(cfg):
         raise RuntimeError("kaput")

@@ -10,7 +10,8 @@ import pytest
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from src.wandb_logging import COLOURS, PAIR_COLUMNS, log_grid, read_offline_run, run_group
+from src.config import sweep_group
+from src.run.wandb_logging import COLOURS, PAIR_COLUMNS, log_grid, read_offline_run
 from tests.helpers.registration_helpers import compose_config, tiny_config
 
 pytest.importorskip("wandb", reason="wandb not installed: pip install wandb (or pip install -e '.[dev]')")
@@ -80,7 +81,7 @@ def test_training_and_evaluation_runs_log_config_card_pairs_and_objects(tmp_path
 
 
 def test_a_single_run_has_no_group():
-    assert run_group() is None
+    assert sweep_group() is None
     assert OmegaConf.create({"group": "${wandb_group:}"}).group is None
 
 

@@ -11,7 +11,7 @@ from baselines.classical import goicp as goicp_module
 from baselines.classical.fgr import FGR
 from baselines.classical.symmetric_icp import symmetric_step
 from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.geometry.numpy_rigid import apply_transform
 
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~10° about a tilted axis

@@ -1,4 +1,4 @@
-"""The classical baselines of issue 25 (RANSAC, point-to-plane ICP, GICP, small_gicp, CPD, FilterReg): known
+"""The newer classical baselines (RANSAC, point-to-plane ICP, GICP, small_gicp, CPD, FilterReg): known
 transforms, the runner's per-pair timeout, bad input and bad options; an optional package missing → skipped."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from baselines import get_registrator, run_pairs, transform_problem
 from baselines.classical import _optional
 from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~14° in total: within a local method's basin
 LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total: for the global method

@@ -7,6 +7,7 @@ import pickle
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from baselines import (
     Registrator,
@@ -16,10 +17,10 @@ from baselines import (
     register_registrator,
     transform_problem,
 )
-from baselines.conditioning import POINT_BUDGET, budget_voxel_size, voxel_down_sample, working_frame
+from baselines.conditioning import POINT_BUDGET, budget_voxel_size, condition, voxel_down_sample, working_frame
 from baselines.registry import _REGISTRY
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface, make_pair
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.geometry.numpy_rigid import project_to_rotation
 
 
@@ -272,3 +273,28 @@ def test_a_line_stored_in_float32_is_still_degenerate():
         with pytest.raises(PointCloudError, match="^src: degenerate cloud, its 50 points are all on one line"):
             get_registrator("icp").register(cloud, ref)
     get_registrator("icp").register(line.astype(np.float64) + np.random.default_rng(1).normal(size=(50, 3)) * 1e-3, ref)
+
+
+def _kabsch(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The exact rigid transform of a noise-free pair (ref = R·src + t)."""
+    cs, cr = src.mean(axis=0), ref.mean(axis=0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (ref - cr))
+    rot = vt.T @ np.diag([1.0, 1.0, np.linalg.det(vt.T @ u.T)]) @ u.T
+    transform = np.eye(4)
+    transform[:3, :3], transform[:3, 3] = rot, cr - rot @ cs
+    return transform
+
+
+def test_condition_is_one_step_and_its_undo_maps_the_estimate_back():
+    rng = np.random.default_rng(3)
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_euler("zyx", [30, -20, 10], degrees=True).as_matrix()
+    truth[:3, 3] = [5.0, -2.0, 1.0]
+    src = 250.0 * rng.normal(size=(60, 3)) + 1e4  # far outside the working frame
+    ref = src @ truth[:3, :3].T + truth[:3, 3]
+    cond_src, cond_ref, undo = condition(src, ref)
+    assert max(np.abs(cond_src).max(), np.abs(cond_ref).max()) < 10  # moved into the working frame
+    np.testing.assert_allclose(undo(_kabsch(cond_src, cond_ref)), truth, atol=1e-8)
+    inside_src, inside_ref = src / 1e4 - 1.0, ref / 1e4 - 1.0
+    same_src, same_ref, same_undo = condition(inside_src, inside_ref, normalise_frame=False, budget=None)
+    assert same_src is inside_src and same_ref is inside_ref and same_undo(truth) is truth

@@ -7,7 +7,7 @@ import pytest
 
 from baselines import RegistrationResult, get_registrator, run_pairs
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 
 
 def _pairs(sizes):

@@ -14,9 +14,9 @@ from torch.utils.data import DataLoader
 from baselines import get_registrator
 from baselines.learned.adapter import LEARNED_METHODS, LearnedRegistrator, run_batches
 from baselines.testing import euler_transform, l_shape_surface
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 from src.models.module import RegistrationModule
-from src.paths import SHIPPED_DIR
+from src.utils.paths import SHIPPED_DIR
 from tests.helpers.paths import CONF
 
 TINY_OMNET = {"_target_": "src.models.omnet.OMNet", "width": 0.0625, "num_iters": 2}
@@ -125,7 +125,7 @@ def test_fresh_weights_for_timing():
 
 
 def test_learned_method_in_the_grid(omnet_ckpt, tmp_path):
-    import benchmarks.grid as grid
+    from benchmarks.grid.run import run_grid
 
     tiny = ["data.build.num_train_per_category=2", "data.build.num_test_per_category=1", "data.build.num_samplings=3",
             f"data.cache_root={tmp_path / 'cache'}"]
@@ -139,7 +139,7 @@ def test_learned_method_in_the_grid(omnet_ckpt, tmp_path):
             f'method_options.omnet.checkpoint={{*/ts/prnet:"{omnet_ckpt}"}}',
             f"output_dir={tmp_path / 'out'}",
         ])
-    result = grid.run_grid(cfg)
+    result = run_grid(cfg)
     assert result.skipped == ["omnet/unseen_shapes/ts/rpmnet: skipped (no checkpoint of omnet matches unseen_shapes/ts/rpmnet)"]
     tidy = result.tidy
     assert set(tidy["method"]) == {"OMNet"} and set(tidy["partial"]) == {"prnet"} and (tidy["n_pairs"] == 3).all()
@@ -173,7 +173,7 @@ def test_a_network_that_samples_at_test_repeats_whatever_ran_before():
 def test_the_seed_defines_a_grid_cell_only_for_a_network_that_samples(omnet_ckpt):
     from omegaconf import OmegaConf
 
-    from benchmarks.grid_plan import MethodFactory
+    from benchmarks.grid.plan import MethodFactory
 
     factory = MethodFactory(OmegaConf.create({}))
     assert factory.identity(_tiny_prnet())["config"]["seed"] == 0

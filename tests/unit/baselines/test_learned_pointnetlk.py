@@ -9,7 +9,7 @@ from torch.utils.data import DataLoader
 from baselines.learned.pointnet_classifier import ClassificationModule
 from baselines.learned.pointnetlk import PointNetLK
 from baselines.learned.published import PUBLISHED
-from src.errors import CheckpointError
+from src.utils.errors import CheckpointError
 from src.geometry import se3_inverse
 from tests.helpers.registration_helpers import eval_losses_before_after
 from tests.helpers.registration_helpers import assert_rigid as _assert_rigid

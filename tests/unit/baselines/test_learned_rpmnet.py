@@ -11,7 +11,7 @@ from baselines.learned.common.correspondence import estimate_normals
 from baselines.learned.rpmnet import RPMNet
 from src.compose import compose_model_config
 from src.config import register_resolvers
-from src.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError
 from src.models.module import RegistrationModule
 from tests.helpers.registration_helpers import assert_reloads_the_same
 from tests.helpers.registration_helpers import assert_rigid as _assert_rigid

@@ -17,11 +17,11 @@ from baselines.learned.published import PUBLISHED, Published
 from baselines.methods import METHODS, display_name, find_method, get_method, markdown_table, paper_rank
 from baselines.result import inlier_fit
 from baselines.testing import euler_transform, make_pair
-from benchmarks.paper import method_key
-from benchmarks.tables import build_table
+from benchmarks.tables.paper import method_key
+from benchmarks.tables.render import build_table
 from src.compose import compose_model_config
-from src.errors import ConfigError
-from src.paths import shared_path
+from src.utils.errors import ConfigError
+from src.utils.paths import shared_path
 from tests.helpers.paths import CONF as CONF_DIR
 
 CONF = str(CONF_DIR)

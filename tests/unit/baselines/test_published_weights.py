@@ -21,8 +21,8 @@ from baselines.learned.published import PUBLISHED, published_module, resolve
 from baselines.learned.weight_converters import convert
 from src.config import register_resolvers
 from src.data.perturbations import TwistPerturbation, UnitCube, build_twist_transforms, twist_matrix
-from src.errors import CheckpointError, ConfigError
-from src.paths import shared_path
+from src.utils.errors import CheckpointError, ConfigError
+from src.utils.paths import shared_path
 from tests.helpers.paths import CONF as CONF_DIR, FIXTURES
 
 CONF = str(CONF_DIR)
@@ -103,7 +103,7 @@ def test_the_shared_file_must_be_the_published_one(tmp_path, monkeypatch):
     torch.save({"emb_nn.conv1.weight": torch.zeros(1)}, tmp_path / "weights" / "dcp_v1.t7")
     with pytest.raises(CheckpointError, match="has sha256 .* not the published file's 797d34fa5ef9"):
         resolve("official:dcp_v1")
-    # the same file given by its path (issue 22: loaded as the published weights, its sha256 never checked)
+    # the same file given by its path (once loaded as the published weights, its sha256 never checked)
     with pytest.raises(CheckpointError, match="has sha256 .* not the published file's 797d34fa5ef9"):
         resolve(str(tmp_path / "weights" / "dcp_v1.t7"))
 

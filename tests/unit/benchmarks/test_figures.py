@@ -1,4 +1,4 @@
-"""benchmarks/figures.py on a tiny generated scan set: a PNG with the right panels."""
+"""benchmarks/plots/figures.py on a tiny generated scan set: a PNG with the right panels."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import pytest
 
 from hydra import compose, initialize_config_dir
 
-from benchmarks.figures import main, pick_pairs
-from benchmarks.grid import run_grid
-from src.errors import ConfigError
+from benchmarks.plots.figures import main, pick_pairs
+from benchmarks.grid.run import run_grid
+from src.utils.errors import ConfigError
 from src.models.pretrained import SHIPPED_DIR
-from src.paths import REPO_ROOT
+from src.utils.paths import REPO_ROOT
 from tests.helpers.scan_helpers import write_scan_set
 
 OMNET = next(SHIPPED_DIR.glob("omnet*.ckpt"), None)

@@ -11,15 +11,17 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-import benchmarks.grid as grid
-import benchmarks.grid_run as grid_run
+import benchmarks.grid.run as grid_run
+from benchmarks.grid.cli import main as grid_main
+from benchmarks.grid.plan import Cell
+from benchmarks.grid.report import report as grid_report
 from baselines import get_registrator, register_registrator
 from baselines.testing import ToyRegistrator
-from benchmarks.tables import build_table, fmt
-from src.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
+from benchmarks.tables.render import build_table, fmt
+from src.utils.errors import CheckpointError, ConfigError, DatasetError, PointCloudError
 from src.metrics import METRIC_NAMES, RegistrationMetrics
 from src.pair_sets import TestSet
-from src.paths import SHIPPED_DIR
+from src.utils.paths import SHIPPED_DIR
 from tests.helpers.markdown import markdown_table
 from tests.helpers.paths import CONF as CONF_DIR
 
@@ -93,7 +95,7 @@ def _by_hand(cache_root: Path, partial: str, method_pred) -> dict[str, float]:
 
 
 def test_grid_tidy_frame_matches_metrics_by_hand_and_flags_failures(tmp_path, cache_root):
-    result = grid.run_grid(grid_cfg(tmp_path / "out", cache_root))
+    result = grid_run.run_grid(grid_cfg(tmp_path / "out", cache_root))
     tidy = result.tidy
     for column in ("method", "experiment", "sampling", "partial", "metric", "value", "n_pairs", "n_failed", "seconds"):
         assert column in tidy.columns
@@ -125,7 +127,7 @@ def test_grid_tidy_frame_matches_metrics_by_hand_and_flags_failures(tmp_path, ca
     assert sorted(pairs[pairs["method"] == "icp"]["pair"]) == [0, 0, 1, 1, 2, 2]
     assert (tmp_path / "out" / "results.parquet").is_file() and (tmp_path / "out" / "results.csv").is_file()
     assert (tmp_path / "out" / "table.md").is_file() is False  # written by report(), not run_grid
-    grid.report(result, grid_cfg(tmp_path / "out", cache_root))
+    grid_report(result, grid_cfg(tmp_path / "out", cache_root))
     assert (tmp_path / "out" / "table.tex").is_file()
     _, written = markdown_table((tmp_path / "out" / "table.md").read_text())
     table = build_table(result.tidy, "table1")  # the grid's tidy frame in the paper's layout (no paper rows here)
@@ -142,7 +144,7 @@ def test_grid_tidy_frame_matches_metrics_by_hand_and_flags_failures(tmp_path, ca
 
 def test_rerun_reuses_finished_cells(tmp_path, cache_root, monkeypatch):
     cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]")
-    first = grid.run_grid(cfg)
+    first = grid_run.run_grid(cfg)
     assert (first.computed, first.reused) == (1, 0)
     cell_files = sorted((tmp_path / "out" / "cells").iterdir())
     mtimes = {p: p.stat().st_mtime_ns for p in cell_files}
@@ -150,31 +152,31 @@ def test_rerun_reuses_finished_cells(tmp_path, cache_root, monkeypatch):
     calls = []
     real_register = grid_run.register_cells
     monkeypatch.setattr(grid_run, "register_cells", lambda cells, c: calls.extend(x.key for x in cells) or real_register(cells, c))
-    second = grid.run_grid(cfg)
+    second = grid_run.run_grid(cfg)
     assert (second.computed, second.reused) == (0, 1) and calls == []
     assert {p: p.stat().st_mtime_ns for p in cell_files} == mtimes
     pd.testing.assert_frame_equal(first.tidy, second.tidy)
 
     # anything that defines a cell (here: the number of pairs) makes a new cell; the old one stays
-    third = grid.run_grid(grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]",
+    third = grid_run.run_grid(grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]",
                                    "benchmark.max_pairs=2"))
     assert (third.computed, third.reused) == (1, 0) and calls == ["toy/unseen_shapes/ts/rpmnet"]
     assert len(list((tmp_path / "out" / "cells").glob("*.json"))) == 2
     # an interrupted cell (parquet without its JSON) is recomputed
     json_file = next(p for p in cell_files if p.suffix == ".json")
     json_file.unlink()
-    fourth = grid.run_grid(cfg)
+    fourth = grid_run.run_grid(cfg)
     assert (fourth.computed, fourth.reused) == (1, 0)
     assert json.loads(json_file.read_text())["complete"] is True
 
 
 def test_damaged_cell_file_is_recomputed_with_a_warning(tmp_path, cache_root, capsys):
     cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]")
-    first = grid.run_grid(cfg)
+    first = grid_run.run_grid(cfg)
     parquet = next((tmp_path / "out" / "cells").glob("*.parquet"))
     parquet.write_bytes(parquet.read_bytes()[: parquet.stat().st_size // 2])  # e.g. a disk filled up mid-copy
     capsys.readouterr()
-    second = grid.run_grid(cfg)
+    second = grid_run.run_grid(cfg)
     assert (second.computed, second.reused) == (1, 0)
     warning = capsys.readouterr().err.strip().splitlines()
     assert len(warning) == 1 and warning[0].startswith("warning: cell toy/unseen_shapes/ts/rpmnet: ")
@@ -187,7 +189,7 @@ def test_damaged_cell_file_is_recomputed_with_a_warning(tmp_path, cache_root, ca
 def test_a_grid_of_the_users_methods_keeps_the_identity_row(tmp_path, cache_root):
     cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]",
                    "benchmark.reference=identity")
-    result = grid.run_grid(cfg)
+    result = grid_run.run_grid(cfg)
     assert sorted(c["method"] for c in result.cells) == ["identity", "toy"]
     identity = result.tidy[(result.tidy["method_id"] == "identity") & (result.tidy["metric"] == "Error(R)")]["value"]
     assert float(identity.iloc[0]) == pytest.approx(_by_hand(cache_root, "rpmnet", lambda s, r: np.eye(4))["Error(R)"])
@@ -195,26 +197,26 @@ def test_a_grid_of_the_users_methods_keeps_the_identity_row(tmp_path, cache_root
 
 def test_exclude_and_per_method_limits(tmp_path, cache_root):
     cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.exclude=[toy/*/*/prnet]", "+benchmark.max_pairs_by_method.icp=2")
-    result = grid.run_grid(cfg)
+    result = grid_run.run_grid(cfg)
     cells = {(c["method"], c["partial"]): c["n_pairs"] for c in result.cells}
     assert cells == {("icp", "prnet"): 2, ("icp", "rpmnet"): 2, ("toy", "rpmnet"): 3}
 
 
 def test_clear_errors(tmp_path, cache_root):
     with pytest.raises(ConfigError, match="unknown registration method 'nosuch'; available: .*icp"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[icp,nosuch]"))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[icp,nosuch]"))
     with pytest.raises(ConfigError, match="unknown experiment 'unseen_planets'; available: .*unseen_shapes"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.experiments=[unseen_planets]"))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.experiments=[unseen_planets]"))
     with pytest.raises(CheckpointError, match="needs a checkpoint: set method_options.omnet.checkpoint"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[omnet]"))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[omnet]"))
     with pytest.raises(CheckpointError, match="does not exist"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[omnet]", f"method_options.omnet.checkpoint={tmp_path}/x.ckpt"))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.methods=[omnet]", f"method_options.omnet.checkpoint={tmp_path}/x.ckpt"))
     with pytest.raises(DatasetError, match="src.data.prepare modelnet40"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, "data=modelnet40", tiny=False))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, "data=modelnet40", tiny=False))
     with pytest.raises(ConfigError, match=r"data.pair.prnet_num_keep=2 is invalid: it must be an integer >= 3"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.partials=[prnet]", data_overrides=("data.pair.prnet_num_keep=2",)))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, "benchmark.partials=[prnet]", data_overrides=("data.pair.prnet_num_keep=2",)))
     with pytest.raises(ConfigError, match=r"data.pair.noise_sigma=-1 is invalid: it must be a number >= 0"):
-        grid.run_grid(grid_cfg(tmp_path, cache_root, data_overrides=("data.pair.noise_sigma=-1",)))
+        grid_run.run_grid(grid_cfg(tmp_path, cache_root, data_overrides=("data.pair.noise_sigma=-1",)))
     assert not (tmp_path / "cells").exists()  # nothing ran
 
 
@@ -230,7 +232,7 @@ def test_command_line_error_is_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("OMNET_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(sys, "argv", ["benchmarks.grid", "benchmark.methods=[icp,nosuch]", f"output_dir={tmp_path}"])
     with pytest.raises(SystemExit) as exit_info:
-        grid.main()
+        grid_main()
     assert exit_info.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()[-1]
     assert error.startswith("error: unknown registration method 'nosuch'; available:")
@@ -238,8 +240,8 @@ def test_command_line_error_is_one_line(tmp_path, monkeypatch, capsys):
 
 def test_pending_cells_share_one_call_per_method_up_to_pairs_per_call():
     a, b = object(), object()
-    cells = [grid.Cell("icp", None, a, n, {}, f"{i}", Path(".")) for i, n in enumerate((50, 50, 50))]
-    cells.insert(1, grid.Cell("fgr", None, b, 10, {}, "x", Path(".")))
+    cells = [Cell("icp", None, a, n, {}, f"{i}", Path(".")) for i, n in enumerate((50, 50, 50))]
+    cells.insert(1, Cell("fgr", None, b, 10, {}, "x", Path(".")))
     calls = grid_run._calls(cells, 120)
     assert [[c.digest for c in call] for call in calls] == [["0", "1"], ["2"], ["x"]]
     assert len(grid_run._calls(cells, None)) == 2

@@ -1,4 +1,4 @@
-"""benchmarks.paper / tables / plots / collect on hand-made frames (no training; a few seconds).
+"""benchmarks.tables.paper / tables / plots / collect on hand-made frames (no training; a few seconds).
 
 The paper-table fixture holds made-up numbers in the paper's CSV format; the real tables are only
 read (if present) to check that they load."""
@@ -13,12 +13,12 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from benchmarks.collect import collect
-from benchmarks.grid import run_grid
-from benchmarks.latex_check import check_latex, count_columns, tabular_rows, tabulars
-from benchmarks.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
-from benchmarks.plots import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures, main as plots_main
-from benchmarks.tables import build_table, fmt, main as tables_main, to_latex, to_markdown
-from src.paths import REPO_ROOT, shared_path
+from benchmarks.grid.run import run_grid
+from benchmarks.tables.latex_check import check_latex, count_columns, tabular_rows, tabulars
+from benchmarks.tables.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
+from benchmarks.plots.sweep import FIGURES, NO_PAPER_NUMBERS, figure_data, make_figures, main as plots_main
+from benchmarks.tables.render import build_table, fmt, main as tables_main, to_latex, to_markdown
+from src.utils.paths import REPO_ROOT, shared_path
 from tests.helpers.markdown import markdown_table, markdown_tables
 from tests.helpers.scan_helpers import write_scan_set
 

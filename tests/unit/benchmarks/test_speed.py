@@ -2,8 +2,8 @@
 
 import pandas as pd
 
-import benchmarks.speed as speed
-from src.machine_speed import MatmulReference
+import benchmarks.speed.inference as speed
+from src.utils.machine_speed import MatmulReference
 from baselines import register_registrator
 from baselines.testing import ToyRegistrator
 from tests.helpers.markdown import markdown_table, markdown_tables

@@ -1,9 +1,9 @@
-"""benchmarks.train_step: the training-step timing table (a tiny OMNet on the CPU)."""
+"""benchmarks.speed.train_step: the training-step timing table (a tiny OMNet on the CPU)."""
 
 import pandas as pd
 
-from benchmarks.speed import format_rate
-from benchmarks.train_step import main, pair_batch
+from benchmarks.speed.inference import format_rate
+from benchmarks.speed.train_step import main, pair_batch
 from tests.helpers.markdown import markdown_table
 
 COLUMNS = ["# points", "precision", "compile", "ms/step (median)", "pairs/s", "vs eager fp32", "GFLOP/s", "% of mm"]
@@ -41,7 +41,7 @@ def test_pair_batch_is_rigid_and_seeded():
 
 
 def test_a_failing_configuration_is_recorded_not_fatal(tmp_path, monkeypatch):
-    import benchmarks.train_step as train_step
+    import benchmarks.speed.train_step as train_step
 
     real = train_step.time_steps
 

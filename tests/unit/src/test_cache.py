@@ -8,7 +8,7 @@ from src.data import cache as cache_module
 from src.data.cache import (
     CacheSplit, CacheWriter, check_cache, default_cache_root, is_cache_valid, open_cache, write_cache,
 )
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 HINT = (
     "run `python -m src.data.prepare modelnet40 --source PATH` "

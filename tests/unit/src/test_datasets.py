@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from src.data import prepare, readers
 from src.data.datasets import DATASET_NAMES, DATASETS, SOURCE_LAYOUTS, get_dataset, read_sources, source_of
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from tests.helpers.registration_helpers import CONF, compose_config
 
 CACHE_DATAMODULE = "src.data.datamodule.RegistrationDataModule"

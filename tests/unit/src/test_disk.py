@@ -1,4 +1,4 @@
-"""Disk faults (issue 22): a full disk while preparing, checkpointing, logging metrics (metrics.csv) or
+"""Disk faults: a full disk while preparing, checkpointing, logging metrics (metrics.csv) or
 writing results is one line (what, where), leaves no temporary and keeps what was written; a valid cache on a read-only mount is read; a cache folder
 without write permission says so. The real cases run on a small tmpfs (root only, else skipped); the
 errno cases are injected at the write layer and run everywhere."""
@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from src.checkpoint_io import AtomicCheckpointIO
+from src.run.checkpoint_io import AtomicCheckpointIO
 from src.data.prepare import build_synthetic_cache, prepare
-from src.errors import DiskError
-from src.files import write_text_atomic
+from src.utils.errors import DiskError
+from src.utils.files import write_text_atomic
 
 SMALL = {"num_train_per_category": 1, "num_test_per_category": 1, "num_samplings": 2, "num_points": 64}
 
@@ -86,7 +86,7 @@ def test_write_errors_are_one_line_without_temporaries(tmp_path, monkeypatch, co
         raise OSError(code, os.strerror(code))
 
     with pytest.raises(DiskError, match=f"^writing metrics.json: .*{cause}"):
-        from src.files import write_atomic
+        from src.utils.files import write_atomic
 
         write_atomic(tmp_path / "metrics.json", denied)
     assert not list(tmp_path.glob(".metrics.json.*"))
@@ -119,7 +119,7 @@ def _fill(disk: Path) -> None:
 
 def test_metrics_csv_on_a_full_disk_is_one_line_and_keeps_its_rows(tiny_disk):
     """Lightning's writer gave a traceback, and a new column's header rewrite truncated the rows on a full disk."""
-    from src.csv_logging import CSVLogger
+    from src.run.csv_logging import CSVLogger
 
     logger = CSVLogger(tiny_disk, name="csv")
     logger.log_metrics({"train/loss": 1.0}, step=0)

@@ -14,8 +14,8 @@ from hydra.types import RunMode
 from packaging.requirements import Requirement
 from packaging.version import Version
 
-from src import lightning_compat
-from src.distributed import ddp_job_command, distributed_job_scope
+from src.run import lightning_compat
+from src.run.distributed import ddp_job_command, distributed_job_scope
 from tests.helpers.registration_helpers import compose_config
 from tests.helpers.paths import ROOT
 
@@ -32,8 +32,8 @@ def test_the_installed_lightning_is_in_the_range_pyproject_requires():
 
 def test_the_patched_function_is_the_one_the_patch_was_written_for():
     change = lightning_compat.upstream_change()
-    assert change is None, (f"{change}: review src.distributed.ddp_job_command against the new source, then set "
-                            "SOURCE_SHA256 in src/lightning_compat.py and the lightning range in pyproject.toml")
+    assert change is None, (f"{change}: review src.run.distributed.ddp_job_command against the new source, then set "
+                            "SOURCE_SHA256 in src/run/lightning_compat.py and the lightning range in pyproject.toml")
     assert lightning_compat.patch_ddp_subprocess_launcher()
     for launcher in lightning_compat._launchers():
         assert launcher._hydra_subprocess_cmd.func is ddp_job_command

@@ -27,8 +27,8 @@ from src.data.transforms import (
     RPMNetCrop,
     Shuffle,
 )
-from src.errors import ConfigError, DatasetError, PointCloudError
-from src.paths import REPO_ROOT, shared_path
+from src.utils.errors import ConfigError, DatasetError, PointCloudError
+from src.utils.paths import REPO_ROOT, shared_path
 
 AIRPLANES = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 

@@ -14,7 +14,7 @@ from src.data.transforms import (
     median_spacing,
     overlap_fraction,
 )
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 
 def _surface(n=2048, seed=0):

@@ -1,6 +1,6 @@
-"""src.paths.without_folder: a committed record names no path of this machine."""
+"""src.utils.paths.without_folder: a committed record names no path of this machine."""
 
-from src.paths import without_folder
+from src.utils.paths import without_folder
 
 
 def test_a_folder_is_written_as_its_placeholder_in_both_spellings_and_only_as_a_whole_name(tmp_path):

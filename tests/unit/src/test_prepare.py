@@ -12,8 +12,8 @@ from src.data import cache as cache_module
 from src.data.cache import open_cache
 from src.data.mesh import MeshShape
 from src.data.prepare import build_synthetic_cache, ensure_cache, main, prepare
-from src.errors import ConfigError, DatasetError
-from src.paths import shared_path
+from src.utils.errors import ConfigError, DatasetError
+from src.utils.paths import shared_path
 
 AIRPLANE_ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 
@@ -218,7 +218,7 @@ def test_real_airplane_archive(tmp_path, info_logs):
         cache.split("test")
 
 
-# --- content verified at use (issue 16): train/eval open caches through ensure_cache ----------
+# --- content verified at use: train/eval open caches through ensure_cache ----------
 
 
 @pytest.fixture
@@ -306,7 +306,7 @@ def test_a_format_1_cache_is_rebuilt_at_use_from_its_recorded_source(resampled_c
     assert cache.manifest["format_version"] == 2 and np.array_equal(_points(cache), resampled_cache[1])
 
 
-# --- shape identities across splits and files (issue 22): a leak or a different dataset than the lists say --
+# --- shape identities across splits and files: a leak or a different dataset than the lists say --
 
 
 def _append(path: Path, line: str) -> None:
@@ -351,7 +351,7 @@ def test_training_refuses_a_cache_whose_splits_share_a_shape_id(tmp_path):
     """A cache written before these checks (or by hand): the same id in its train and test splits."""
     from src.data.cache import CacheSplit, write_cache
     from src.data.datamodule import RegistrationDataModule
-    from src.errors import ConfigError
+    from src.utils.errors import ConfigError
 
     points = np.random.default_rng(0).normal(size=(2, 1, 64, 3)).astype(np.float32)
     fields = {"dataset": "modelnet40_resampled", "source_layout": "pointnet2_resampled",

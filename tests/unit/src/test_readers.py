@@ -8,7 +8,7 @@ from src.data.readers import (
     PointNetH5Reader, PointShape, PrincetonOffReader, ResampledReader, detect_layout, open_reader, parse_off,
     parse_resampled,
 )
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 
 def test_parse_off_glued_header_comments_and_polygons():

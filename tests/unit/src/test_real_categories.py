@@ -14,7 +14,7 @@ from src.config import register_resolvers
 from src.data.cache import file_sha256
 from src.data.prepare import main, prepare
 from src.data.readers import MergedReader, open_reader
-from src.errors import ConfigError, DatasetError
+from src.utils.errors import ConfigError, DatasetError
 from tests.helpers.modelnet import TRAIN
 from tests.helpers.paths import CONF
 

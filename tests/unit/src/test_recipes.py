@@ -17,10 +17,10 @@ from torch import nn
 from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
 from torch.utils.data import DataLoader
 
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 from src.models.module import RegistrationModule, WarmupCosine
 from src.train import train
-from src.trainer import build_trainer
+from src.run.trainer import build_trainer
 from tests.helpers.registration_helpers import (
     CONF,
     RESUME_RUN,

@@ -1,12 +1,12 @@
-"""src.records: registries kept as YAML lists of dataclass records."""
+"""src.utils.records: registries kept as YAML lists of dataclass records."""
 
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-from src.errors import ConfigError
-from src.records import load_records
+from src.utils.errors import ConfigError
+from src.utils.records import load_records
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@ import pytest
 
 from src.data.mesh import MeshShape
 from src.data.sampling import normalize_mesh, sample_shape, sample_surface
-from src.errors import DatasetError
+from src.utils.errors import DatasetError
 
 
 def test_normalize_mesh_centres_bbox_and_scales_to_unit_sphere(meshes):

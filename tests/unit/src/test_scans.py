@@ -16,9 +16,9 @@ from scipy.spatial.transform import Rotation
 from src.config import register_resolvers
 from src.data.scan_pairs import ScanPairsDataModule
 from src.data.scans import normalise_pair, parse_ply_points, read_scans, scan_pairs
-from src.errors import ConfigError, DatasetError, exit_code_of
+from src.utils.errors import ConfigError, DatasetError, exit_code_of
 from src.geometry.numpy_rigid import apply_transform
-from src.paths import REPO_ROOT, shared_path
+from src.utils.paths import REPO_ROOT, shared_path
 from tests.helpers.scan_helpers import COLUMNS, ply_text, surface, write_scan_set
 
 register_resolvers()

@@ -14,7 +14,7 @@ from src.data.categories import AXISYMMETRIC_CATEGORIES
 from src.data.mesh import MeshShape
 from src.data.sampling import normalize_mesh, sample_shape, sample_surface
 from src.data.synthetic import SYNTHETIC_CATEGORIES, SYNTHETIC_HALVES, generate_shapes
-from src.errors import ConfigError
+from src.utils.errors import ConfigError
 
 NUM_TRAIN, NUM_TEST = 6, 2
 

@@ -15,7 +15,7 @@ from src.data.transforms import (
     RandomRigidTransform,
     RPMNetCrop,
 )
-from src.errors import ConfigError, DatasetError, PointCloudError
+from src.utils.errors import ConfigError, DatasetError, PointCloudError
 
 
 def _shapes(num_shapes=6, samplings=4, points=2048, seed=0):

@@ -1,0 +1,209 @@
+"""Running the grid's cells: registering their pairs, scoring them, writing their files, and the
+tidy table of a run (see :mod:`benchmarks.grid` for the files).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from baselines import RegistrationResult, run_pairs
+from baselines.methods import display_name
+from benchmarks.grid.plan import Cell, plan
+from src.config import euler_seq_for
+from src.utils.files import write_atomic
+from src.metrics import CHAMFER, ERROR_R, ERROR_T, MAE_R, MAE_T, PAIR_ERRORS
+
+TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
+                "value", "n_pairs", "n_failed", "seconds", "seconds_per_pair", "cell")
+
+
+def cell_metrics(
+    results: Sequence[RegistrationResult], pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], euler_seq: str
+) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """RegistrationMetrics over the cell (failed pairs count with their identity estimate) and the
+    per-pair errors."""
+    import torch
+
+    from src.geometry import se3_apply
+    from src.metrics import RegistrationMetrics, chamfer_distance, pair_errors
+
+    metric = RegistrationMetrics(euler_seq)
+    per_pair: dict[str, list[float]] = {name: [] for name in PAIR_ERRORS}
+    for result, (src, ref, gt) in zip(results, pairs):
+        pred_t = torch.tensor(np.asarray(result.transform), dtype=torch.float64)[None]
+        gt_t = torch.as_tensor(gt, dtype=torch.float32)[None]
+        src_t = torch.as_tensor(src, dtype=torch.float32)[None]
+        ref_t = torch.as_tensor(ref, dtype=torch.float32)[None]
+        metric.update(pred_t, gt_t, src_t, ref_t)
+        err = pair_errors(pred_t, gt_t, euler_seq)
+        per_pair[ERROR_R].append(float(err["rot_deg"][0]))
+        per_pair[ERROR_T].append(float(err["trans_norm"][0]))
+        per_pair[MAE_R].append(float(err["euler_err"][0].abs().mean()))
+        per_pair[MAE_T].append(float(err["trans_err"][0].abs().mean()))
+        moved = se3_apply(pred_t.float(), src_t)
+        per_pair[CHAMFER].append(float(chamfer_distance(moved, ref_t)[0]))
+    return metric.compute(), {k: np.asarray(v) for k, v in per_pair.items()}
+
+
+def register(registrator: Any, pairs: Sequence[tuple[np.ndarray, np.ndarray]], workers: int | None = None,
+             timeout_s: float | None = None, progress: bool = True) -> list[RegistrationResult]:
+    """One result per ``(src, ref)`` pair: a learned registrator's in batches (:func:`run_batches`), a classical
+    one's in worker processes (:func:`run_pairs`)."""
+    if getattr(registrator, "needs_training", False):
+        from baselines.learned.adapter import run_batches
+
+        return run_batches(registrator, pairs, progress=progress)
+    return run_pairs(registrator, pairs, workers=workers, timeout_s=timeout_s, progress=progress)
+
+
+def register_cells(cells: Sequence[Cell], cfg: DictConfig) -> list[tuple[list[RegistrationResult], float]]:
+    """Register the pairs of ``cells`` (all of one registrator): one result list per cell and the
+    wall time of the call. A classical method's cells go through one :func:`run_pairs` call (one set
+    of worker processes for all of them); a learned method's through :func:`run_batches`."""
+    clouds = [[(src, ref) for src, ref, _ in cell.test_set.pairs(cell.n_pairs)] for cell in cells]
+    flat = [pair for cell_clouds in clouds for pair in cell_clouds]
+    start = time.perf_counter()
+    workers = cfg.get("workers")
+    results = register(cells[0].registrator, flat, None if workers is None else int(workers), cfg.get("timeout_s"),
+                       bool(cfg.progress))
+    wall = time.perf_counter() - start
+    out, offset = [], 0
+    for cell_clouds in clouds:
+        part = results[offset : offset + len(cell_clouds)]
+        out.append((part, wall * len(cell_clouds) / max(len(flat), 1)))
+        offset += len(cell_clouds)
+    return out
+
+
+def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) -> dict[str, Any]:
+    """Score a registered cell, write its parquet, then its JSON (the commit marker); return the summary."""
+    import pandas as pd
+
+    t = cell.test_set
+    pairs = t.pairs(cell.n_pairs)
+    euler_seq = euler_seq_for(t.partial)
+    metrics, errors = cell_metrics(results, pairs, euler_seq)
+    frame = pd.DataFrame({
+        "method": cell.method,
+        "experiment": t.experiment,
+        "sampling": t.sampling.upper(),
+        "partial": t.partial,
+        "dataset": t.dataset_name,
+        "cell": cell.digest,
+        "pair": range(len(results)),
+        "transform": [np.asarray(r.transform, dtype=np.float64).reshape(-1).tolist() for r in results],
+        "transform_gt": [gt.reshape(-1).tolist() for _, _, gt in pairs],
+        "seconds": [float(r.seconds) for r in results],
+        "failed": [bool(r.failed) for r in results],
+        "reason": [r.reason for r in results],
+        **{name: errors[name] for name in PAIR_ERRORS},
+    })
+    cell.folder.mkdir(parents=True, exist_ok=True)
+    write_atomic(cell.pairs_path, lambda p: frame.to_parquet(p, index=False))
+    n_failed = int(frame["failed"].sum())
+    summary = {
+        "digest": cell.digest,
+        "method": cell.method,
+        "label": getattr(cell.registrator, "label", display_name(cell.method)),
+        "experiment": t.experiment,
+        "sampling": t.sampling,
+        "partial": t.partial,
+        "dataset": t.dataset_name,
+        "noise_sigma": t.noise_sigma,
+        "euler_seq": euler_seq,
+        "n_pairs": len(results),
+        "n_failed": n_failed,
+        "failure_reasons": frame.loc[frame["failed"], "reason"].value_counts().to_dict(),
+        "seconds": float(frame["seconds"].sum()),
+        "wall_seconds": wall,
+        "metrics": metrics,
+        "definition": cell.definition,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "complete": True,
+    }
+    write_atomic(cell.summary_path, lambda p: p.write_text(json.dumps(summary, indent=2, default=str)))
+    return summary
+
+
+def _calls(cells: Sequence[Cell], pairs_per_call: int | None) -> list[list[Cell]]:
+    """Pending cells grouped by registrator (in grid order), each group cut into calls of at most
+    ``pairs_per_call`` pairs (a cell is never split)."""
+    groups: dict[int, list[Cell]] = {}
+    for cell in cells:
+        groups.setdefault(id(cell.registrator), []).append(cell)
+    calls = []
+    for group in groups.values():
+        current: list[Cell] = []
+        for cell in group:
+            if current and pairs_per_call and sum(c.n_pairs for c in current) + cell.n_pairs > pairs_per_call:
+                calls.append(current)
+                current = []
+            current.append(cell)
+        calls.append(current)
+    return calls
+
+
+def tidy_rows(summary: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The rows of the tidy table (:data:`TIDY_COLUMNS`) of one cell's summary: one per metric."""
+    from src.metrics import METRIC_NAMES
+
+    n = int(summary["n_pairs"])
+    common = {
+        "method": summary.get("label") or display_name(summary["method"]),
+        "method_id": summary["method"],
+        "experiment": summary["experiment"],
+        "sampling": str(summary["sampling"]).upper(),
+        "partial": summary["partial"],
+        "dataset": summary["dataset"],
+        "noise_sigma": float(summary["noise_sigma"]),
+    }
+    tail = {"n_pairs": n, "n_failed": int(summary["n_failed"]), "seconds": float(summary["seconds"]),
+            "seconds_per_pair": float(summary["seconds"]) / max(n, 1), "cell": summary["digest"]}
+    return [{**common, "metric": name, "value": float(summary["metrics"][name]), **tail}
+            for name in METRIC_NAMES if name in summary["metrics"]]
+
+
+@dataclass
+class GridResult:
+    """A run of the grid: its tidy table, per-pair rows, cell summaries and what was reused or skipped."""
+
+    tidy: Any  # pandas.DataFrame, see TIDY_COLUMNS
+    pairs: Any  # pandas.DataFrame, one row per pair
+    cells: list[dict[str, Any]]
+    reused: int = 0
+    computed: int = 0
+    skipped: list[str] = field(default_factory=list)
+    output_dir: Path | None = None
+
+
+def run_grid(cfg: DictConfig) -> GridResult:
+    """Plan, run (or reuse) every cell, write the tidy table and the per-pair rows."""
+    import pandas as pd
+    from tqdm.auto import tqdm
+
+    output_dir = Path(str(cfg.output_dir))
+    cells, notes = plan(cfg)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    done = {cell.digest: loaded for cell in cells if (loaded := cell.load()) is not None}
+    pending = [cell for cell in cells if cell.digest not in done]
+    with tqdm(total=len(cells), initial=len(done), disable=not cfg.progress, desc="grid", unit="cell", dynamic_ncols=True) as bar:
+        for call in _calls(pending, cfg.get("pairs_per_call")):
+            bar.set_postfix_str(f"{call[0].method}: {len(call)} cell(s)", refresh=True)
+            for cell, (results, wall) in zip(call, register_cells(call, cfg)):
+                done[cell.digest] = finish_cell(cell, results, wall)
+                bar.update(1)
+    summaries = [done[cell.digest] for cell in cells]
+    tidy = pd.DataFrame([row for s in summaries for row in tidy_rows(s)], columns=list(TIDY_COLUMNS))
+    pairs = pd.concat([pd.read_parquet(cell.pairs_path) for cell in cells], ignore_index=True)
+    write_atomic(output_dir / "results.parquet", lambda p: tidy.to_parquet(p, index=False))
+    write_atomic(output_dir / "results.csv", lambda path: tidy.to_csv(path, index=False))
+    write_atomic(output_dir / "pairs.parquet", lambda p: pairs.to_parquet(p, index=False))
+    return GridResult(tidy, pairs, summaries, len(cells) - len(pending), len(pending), notes, output_dir)

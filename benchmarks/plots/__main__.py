@@ -1,0 +1,5 @@
+import sys
+
+from benchmarks.plots.sweep import main
+
+sys.exit(main())

@@ -1,0 +1,2 @@
+"""Timing: inference per method (:mod:`.inference`, ``python -m benchmarks.speed``), a network's training step
+(:mod:`.train_step`), a time-boxed trial of the paper's training on a GPU (:mod:`.gpu_trial`)."""

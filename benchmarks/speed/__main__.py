@@ -1,0 +1,5 @@
+import sys
+
+from benchmarks.speed.inference import main
+
+sys.exit(main())

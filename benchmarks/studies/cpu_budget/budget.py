@@ -1,0 +1,351 @@
+"""One CPU budget, every learned method: each trained through ``src.train`` on the real airplanes.
+
+Protocol: ``+exp=real_airplane`` (train on the airplanes outside validation and test, select on the 200
+validation pairs, test on the carve-out), TS, PRNet manner, clean pairs, one torch thread, pairs made in
+the training process. Each method keeps its authors' recipe (``conf/recipe/<model>.yaml``; OMNet: the
+official code's, ``recipe=omnet_official``) with the schedule mapped onto the steps the budget buys
+(:func:`budget_schedule`), its authors' batch, and the widest width that still buys ``MIN_STEPS`` steps
+(:func:`plan_method`, from a probe of the step's CPU time). PointNetLK's classifier stage trains first,
+inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its ``last.ckpt``.
+
+    python -m benchmarks.studies.cpu_budget.budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2] [--archive DIR]
+    python -m benchmarks.studies.cpu_budget.budget beyond --root RUNS --method omnet --recipe omnet_cpu --budget-h 1.5 [--init-weights CKPT]
+    python -m benchmarks.studies.cpu_budget.budget archive --root RUNS --out benchmarks/studies/cpu_budget/results/runs
+    python -m benchmarks.studies.cpu_budget.report --root benchmarks/studies/cpu_budget/results/runs --out benchmarks/studies/cpu_budget/results
+
+``archive`` copies each run's record (plan, commands, CSV logs, test metrics: kilobytes, no checkpoint)
+into the repository, so that the report is made from committed files: run folders need not outlive
+the machine they ran on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable, Sequence
+
+from benchmarks.studies.cpu_budget.recipes import CPU_TRAINING_ENV, add_run_parser, code_version, run_each, train_logged
+from src.utils.errors import ConfigError, exit_code_of
+from src.utils.paths import without_folder
+
+#: The learned methods of the grid, in the grid's order.
+METHODS = ("omnet", "dcp", "prnet", "rpmnet", "idam", "pointnetlk", "pointnetlk_revisited", "fmr", "deepgmr")
+#: A recipe other than ``conf/recipe/<model>.yaml``: OMNet's official code, not the paper's text (the guide's rule).
+RECIPE_OF = {"omnet": "omnet_official"}
+#: PointNetLK's first stage (its authors' ``ex1_train.sh``): a classifier whose features PointNetLK starts from.
+#: On the synthetic default's categories: the real data has one training category (nothing to classify), and
+#: bathtubs are the unseen-category test set.
+CLASSIFIER = {"model": "pointnet_classifier", "data": ["+exp=unseen_shapes", "data=synthetic"]}
+MIN_STEPS = 500
+WIDTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+VALIDATIONS = 20          # validations per run (200 pairs each), the points of the learning curve
+PROBE_POINTS = 768        # the PRNet manner's crop
+#: Step-cost allowance for what the probe does not time (pair generation, logging, Lightning's loop).
+OVERHEAD = 1.1
+PROTOCOL = [
+    "+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noise_sigma=0.0",
+    "trainer.accelerator=cpu", "data.num_workers=0", "data.persistent_workers=false", "data.pin_memory=false",
+    "data.eval_batch_size=50", "trainer.check_val_every_n_epoch=null", "trainer.max_epochs=-1",
+    "trainer.log_every_n_steps=20", "trainer.enable_progress_bar=false", "test_after_fit=true",
+    "callbacks.periodic_checkpoint.train_time_interval.minutes=5",
+]
+
+
+def compose_recipe(model: str, recipe: str | None = None) -> Any:
+    """The model's training recipe as ``src.train`` composes it (``model=<model>`` plus its recipe: ``recipe``, or
+    the study's, :data:`RECIPE_OF`)."""
+    from src.compose import compose_conf
+
+    recipe = recipe or RECIPE_OF.get(model)
+    return compose_conf([f"model={model}"] + ([f"recipe={recipe}"] if recipe else []))
+
+
+def budget_schedule(cfg: Any) -> list[str]:
+    """Overrides that put the recipe's schedule on the run's own length: milestones (in epochs or steps)
+    become fractions of the steps; a plateau's patience (in epochs) the same share of the validations."""
+    from omegaconf import OmegaConf
+
+    spec = OmegaConf.to_container(cfg.model, resolve=True).get("scheduler")
+    length = cfg.trainer.max_epochs if cfg.trainer.max_epochs and cfg.trainer.max_epochs > 0 else cfg.trainer.max_steps
+    if spec is None:
+        return []
+    if spec["name"] == "multistep" and "milestones" in spec:
+        fractions = ", ".join(f"{m / length:.4g}" for m in spec["milestones"])
+        return ["~model.scheduler",
+                f"+model.scheduler={{name: multistep, interval: step, fractions: [{fractions}], gamma: {spec['gamma']}}}"]
+    if spec["name"] == "plateau":
+        patience = max(1, round(spec["patience"] / length * VALIDATIONS))
+        return [f"model.scheduler.patience={patience}", "+model.scheduler.interval=validation"]
+    if spec["name"] in ("cosine", "onecycle") or "fractions" in spec:
+        return []  # already spans the run
+    raise ConfigError(f"{cfg.model.network._target_}: no budget mapping for schedule {spec}")
+
+
+#: Address space a probed step may use: half the machine's 24 GiB, so that two runs and the rest fit beside it.
+PROBE_MEMORY_BYTES = 12 * 2**30
+
+
+def _limit_memory() -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (PROBE_MEMORY_BYTES, PROBE_MEMORY_BYTES))
+
+
+def probe_step_seconds(model: str, width: float, batch: int) -> float:
+    """:func:`time_step` in a child process (one thread, at most :data:`PROBE_MEMORY_BYTES`), so that a step
+    too large for the memory is measured as ``inf`` rather than taking the planner (or a run) down with it."""
+    code = (f"from benchmarks.studies.cpu_budget.budget import time_step; print(time_step({model!r}, {width!r}, {batch!r}))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env={**os.environ, **CPU_TRAINING_ENV}, preexec_fn=_limit_memory)
+    if result.returncode != 0:
+        return math.inf
+    return float(result.stdout.strip().splitlines()[-1])
+
+
+def time_step(model: str, width: float, batch: int, steps: int = 2) -> float:
+    """CPU seconds of one training step (forward, loss, backward, Adam) of ``model`` at ``width``, one
+    thread, fresh weights, ``batch`` pairs of :data:`PROBE_POINTS` points; the first step is not timed."""
+    import torch
+    import torch.nn.functional as F
+
+    from benchmarks.speed.train_step import build_network, pair_batch
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    network = build_network(model, width, []).train()
+    data = pair_batch(batch, PROBE_POINTS, torch.device("cpu"))
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
+
+    def loss() -> torch.Tensor:
+        if model == CLASSIFIER["model"]:
+            return F.cross_entropy(network(data["points_ref"]), torch.arange(batch) % 2)
+        return network.loss(network(data["points_src"], data["points_ref"], data["transform_gt"]), data["transform_gt"])["loss"]
+
+    def step() -> None:
+        optimizer.zero_grad(set_to_none=True)
+        loss().backward()
+        optimizer.step()
+
+    step()
+    start = time.process_time()
+    for _ in range(steps):
+        step()
+    return (time.process_time() - start) / steps
+
+
+@dataclass
+class Stage:
+    """One ``src.train`` run of a method's budget: its model, width, batch, steps and overrides."""
+
+    name: str
+    model: str
+    width: float
+    batch: int
+    step_cpu_s: float
+    budget_cpu_h: float
+    max_steps: int
+    overrides: list[str] = field(default_factory=list)
+
+    @property
+    def val_every(self) -> int:
+        return max(1, self.max_steps // VALIDATIONS)
+
+
+def _steps_for(seconds: float, step_s: float) -> int:
+    return int(seconds / (step_s * OVERHEAD))
+
+
+def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[str, Any]:
+    """Width, batch, steps and schedule of ``method`` under ``budget_h`` CPU hours (see the module docstring)."""
+    cfg = compose_recipe(method)
+    batch = int(cfg.data.batch_size)
+    probes: dict[str, float] = {}
+    for width in WIDTHS:
+        probes[str(width)] = probe(method, width, batch)
+        if _steps_for(budget_h * 3600, probes[str(width)]) >= MIN_STEPS:
+            break
+    step_s = probes[str(width)]
+    if not math.isfinite(step_s):
+        raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} in "
+                          f"{PROBE_MEMORY_BYTES / 2**30:.0f} GiB (out of memory?)")
+    stages = []
+    budget_s = budget_h * 3600
+    if method == "pointnetlk":  # the classifier stage's share: the authors' epochs times the probed step costs
+        cls = compose_recipe(CLASSIFIER["model"])
+        cls_batch = int(cls.data.batch_size)
+        cls_step = probe(CLASSIFIER["model"], width, cls_batch)
+        cls_cost, lk_cost = cls.trainer.max_epochs * cls_step, cfg.trainer.max_epochs * step_s
+        cls_s = budget_s * cls_cost / (cls_cost + lk_cost)
+        stages.append(Stage("classifier", CLASSIFIER["model"], width, cls_batch, cls_step, cls_s / 3600,
+                            _steps_for(cls_s, cls_step), [*CLASSIFIER["data"], *budget_schedule(cls)]))
+        budget_s -= cls_s
+    stages.append(Stage(method, method, width, batch, step_s, budget_s / 3600, _steps_for(budget_s, step_s),
+                        ([f"recipe={RECIPE_OF[method]}"] if method in RECIPE_OF else []) + budget_schedule(cfg)))
+    return {"method": method, "budget_cpu_h": budget_h, "width": width, "probe_step_cpu_s": probes,
+            "stages": [vars(s) for s in stages], "code": code_version()}
+
+
+#: The folder of a method's run beyond the equal budget, beside the method's own.
+BEYOND = "_beyond"
+
+
+def plan_beyond(method: str, recipe: str, budget_h: float, init_weights: str | None = None,
+                probe=probe_step_seconds) -> dict[str, Any]:
+    """A run of ``method`` beyond the equal budget: ``recipe`` as it is (its width, batch and a schedule that spans
+    the run), the steps ``budget_h`` buys at the probed step cost, optionally starting from ``init_weights``."""
+    cfg = compose_recipe(method, recipe)
+    width, batch = float(cfg.model_scale), int(cfg.data.batch_size)
+    step_s = probe(method, width, batch)
+    if not math.isfinite(step_s):
+        raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} (out of memory?)")
+    overrides = [f"recipe={recipe}"] + ([f"init_weights={init_weights}"] if init_weights else [])
+    stage = Stage(method, method, width, batch, step_s, budget_h, _steps_for(budget_h * 3600, step_s), overrides)
+    return {"method": method, "beyond": recipe, "budget_cpu_h": budget_h, "width": width,
+            "probe_step_cpu_s": {str(width): step_s}, "stages": [vars(stage)], "code": code_version()}
+
+
+def stage_command(stage: Stage, run_dir: Path, extra: list[str]) -> list[str]:
+    """The ``src.train`` command line of one stage (resuming from its ``last.ckpt`` when there is one)."""
+    protocol = [o for o in PROTOCOL if not (stage.model == CLASSIFIER["model"] and o.startswith(("+exp=", "sampling=", "partial=")))]
+    command = [sys.executable, "-m", "src.train", *protocol, f"model={stage.model}", f"model_scale={stage.width}",
+               f"data.batch_size={stage.batch}", f"trainer.max_steps={stage.max_steps}",
+               f"trainer.val_check_interval={stage.val_every}", *stage.overrides, *extra,
+               f"callbacks.clock.budget_cpu_hours={stage.budget_cpu_h:.4f}",
+               f"task_name=cpu_budget_{stage.name}", f"hydra.run.dir={run_dir}"]
+    last = run_dir / "checkpoints" / "last.ckpt"
+    return command + ([f"ckpt_path={last}"] if last.is_file() else [])
+
+
+def best_checkpoint(run_dir: Path) -> Path:
+    """The run's selected checkpoint (``best-<step>.ckpt``; the last one when the recipe selects none)."""
+    best = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
+    return best[-1] if best else run_dir / "checkpoints" / "last.ckpt"
+
+
+#: Planning composes configs (Hydra's global state) and times steps in this process: one method at a time.
+_PLANNING = threading.Lock()
+
+
+def run_method(method: str, root: Path, budget_h: float, folder: str | None = None,
+               planner: Callable[[], dict[str, Any]] | None = None) -> str:
+    """Plan (once: ``planner``, by default :func:`plan_method`), then train each stage of ``method`` to its steps
+    (resuming) in ``root/<folder>`` (by default the method's name); a one-line status."""
+    method_dir = root / (folder or method)
+    method_dir.mkdir(parents=True, exist_ok=True)
+    plan_file = method_dir / "plan.json"
+    with _PLANNING:
+        if not plan_file.is_file():
+            plan = planner() if planner else plan_method(method, budget_h)
+            plan_file.write_text(json.dumps(plan, indent=2))
+    plan = json.loads(plan_file.read_text())
+    extra: list[str] = []
+    for stage in (Stage(**s) for s in plan["stages"]):
+        run_dir = method_dir / stage.name
+        run_dir.mkdir(exist_ok=True)
+        done = run_dir / "done.json"
+        if not done.is_file():
+            command = stage_command(stage, run_dir, extra)
+            (run_dir / "command.txt").write_text(" ".join(command[1:]) + "\n")
+            code = train_logged(run_dir, command)
+            if code != 0:
+                return f"{method_dir.name}/{stage.name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
+            done.write_text(json.dumps({"stage": vars(stage), "command": " ".join(command[1:])}, indent=2))
+        extra = [f"model.network.feature_init={best_checkpoint(run_dir)}"]  # the next stage starts from these features
+    return f"{method_dir.name}: done"
+
+
+#: A stage's record: what ran (command, plan), its logs and its test metrics; checkpoints stay in the run folder.
+RECORD_FILES = ("command.txt", "done.json", "metrics.json")
+
+
+def run_folders(root: Path) -> list[str]:
+    """The run folders under ``root`` in the grid's order: each method's, then its run beyond the budget."""
+    return [name for m in METHODS for name in (m, m + BEYOND) if (root / name / "plan.json").is_file()]
+
+
+def _copy_record(source: Path, target: Path, root: Path) -> None:
+    """A text record copied with ``root`` written as ``RUNS``: the repository names no path of this machine."""
+    target.write_text(without_folder(source.read_text(), root, "RUNS"))
+
+
+def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) -> list[str]:
+    """Copy the record of each run folder (``methods``, by default all: :func:`run_folders`) under ``root`` into
+    ``out`` (replacing its older copy)."""
+    methods = run_folders(root) if methods is None else methods
+    archived = []
+    for method in methods:
+        plan = root / method / "plan.json"
+        if not plan.is_file():
+            continue
+        target = out / method
+        if target.exists():
+            shutil.rmtree(target)
+        target.mkdir(parents=True)
+        _copy_record(plan, target / "plan.json", root)
+        for stage in json.loads(plan.read_text())["stages"]:
+            run_dir, copy_dir = root / method / stage["name"], target / stage["name"]
+            for log in run_dir.glob("csv/version_*/metrics.csv"):
+                (copy_dir / log.parent.relative_to(run_dir)).mkdir(parents=True, exist_ok=True)
+                shutil.copy2(log, copy_dir / log.relative_to(run_dir))
+            for name in RECORD_FILES:
+                if (run_dir / name).is_file():
+                    copy_dir.mkdir(parents=True, exist_ok=True)
+                    _copy_record(run_dir / name, copy_dir / name, root)
+        archived.append(method)
+    if not archived:
+        raise ConfigError(f"no method run under {root}: nothing to archive")
+    return archived
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.studies.cpu_budget.budget", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = add_run_parser(sub, "methods", METHODS, ("--budget-h", 1.0, "CPU hours"), parallel=2)
+    run.add_argument("--archive", type=Path, default=None,
+                     help="archive each method's record here when its run returns (e.g. benchmarks/studies/cpu_budget/results/runs)")
+    beyond = sub.add_parser("beyond", help="train one method beyond the budget with a recipe (resumable)")
+    beyond.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
+    beyond.add_argument("--method", required=True, choices=METHODS)
+    beyond.add_argument("--recipe", required=True, help="conf/recipe/<name>.yaml, taken as it is (e.g. omnet_cpu)")
+    beyond.add_argument("--budget-h", type=float, required=True, help="CPU hours of this run, one thread")
+    beyond.add_argument("--init-weights", default=None, help="start from this checkpoint's weights (src.train init_weights)")
+    beyond.add_argument("--archive", type=Path, default=None, help="archive the run's record here when it returns")
+    arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
+    arc.add_argument("--root", type=Path, required=True)
+    arc.add_argument("--out", type=Path, default=Path("benchmarks/studies/cpu_budget/results/runs"))
+    args = parser.parse_args(argv)
+
+    def action() -> None:
+        if args.command == "archive":
+            print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
+            return
+        if args.command == "beyond":
+            folder = args.method + BEYOND
+            planner = lambda: plan_beyond(args.method, args.recipe, args.budget_h, args.init_weights)  # noqa: E731
+            run_each(args.method, METHODS, "methods", ("--budget-h", args.budget_h), 1,
+                     lambda m: run_method(m, args.root, args.budget_h, folder, planner))
+            if args.archive is not None:
+                archive_runs(args.root, args.archive, [folder])
+            return
+        def run_one(method: str) -> str:
+            status = run_method(method, args.root, args.budget_h)
+            if args.archive is not None:
+                archive_runs(args.root, args.archive, [method])
+            return status
+
+        run_each(args.methods, METHODS, "methods", ("--budget-h", args.budget_h), args.parallel, run_one)
+
+    return exit_code_of(action)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

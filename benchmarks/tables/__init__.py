@@ -1,0 +1,1 @@
+"""Result tables: pandas, Markdown and LaTeX from a grid or a sweep (:mod:`.render`), the paper's values beside ours (:mod:`.paper`), and the LaTeX check (:mod:`.latex_check`); ``python -m benchmarks.tables``."""

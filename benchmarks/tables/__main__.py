@@ -1,0 +1,5 @@
+import sys
+
+from benchmarks.tables.render import main
+
+sys.exit(main())

@@ -1,0 +1,201 @@
+"""benchmarks.studies.cpu_budget.budget: each method's recipe mapped onto one CPU budget, the width rule, the two-stage
+PointNetLK plan, and resumable, chained runs (training itself replaced by a recorder)."""
+
+import json
+import re
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from benchmarks.studies.cpu_budget import budget as cpu_budget
+from benchmarks.studies.cpu_budget.budget import MIN_STEPS, OVERHEAD, Stage, budget_schedule, compose_recipe, plan_method, stage_command
+
+
+def _fractions(overrides: list[str]) -> list[float]:
+    (spec,) = [o for o in overrides if o.startswith("+model.scheduler=")]
+    return [float(x) for x in re.search(r"fractions: \[([^\]]*)\]", spec).group(1).split(",")]
+
+
+@pytest.mark.parametrize("method", ["omnet", "dcp", "prnet", "idam"])
+def test_milestones_become_the_same_fractions_of_the_budget_run(method):
+    cfg = compose_recipe(method)
+    spec = OmegaConf.to_container(cfg.model.scheduler)
+    length = cfg.trainer.max_epochs if cfg.trainer.max_epochs > 0 else cfg.trainer.max_steps
+    assert _fractions(budget_schedule(cfg)) == pytest.approx([m / length for m in spec["milestones"]], rel=1e-3)
+
+
+def test_omnet_trains_with_the_official_codes_recipe():
+    cfg = compose_recipe("omnet")
+    assert cfg.data.batch_size == 16 and cfg.model.lr == pytest.approx(1e-4)
+    assert _fractions(budget_schedule(cfg)) == pytest.approx([0.7, 0.9])
+
+
+def test_plateau_patience_becomes_the_same_share_of_the_validations():
+    cfg = compose_recipe("deepgmr")
+    patience = round(cfg.model.scheduler.patience / cfg.trainer.max_epochs * cpu_budget.VALIDATIONS)
+    assert budget_schedule(cfg) == [f"model.scheduler.patience={patience}", "+model.scheduler.interval=validation"]
+
+
+@pytest.mark.parametrize("method", ["rpmnet", "fmr", "pointnetlk_revisited"])
+def test_a_recipe_without_schedule_stays_without(method):
+    assert budget_schedule(compose_recipe(method)) == []
+
+
+def _cost(seconds_at_full_width: float):
+    calls = []
+
+    def probe(model: str, width: float, batch: int) -> float:
+        calls.append((model, width, batch))
+        return seconds_at_full_width * width**2
+    return probe, calls
+
+
+def test_the_widest_width_that_buys_the_minimum_steps_is_chosen():
+    probe, calls = _cost(30.0)  # 1.0 -> 109 steps, 0.5 -> 436, 0.25 -> 1745 in an hour
+    plan = plan_method("dcp", 1.0, probe)
+    assert [w for _, w, _ in calls] == [1.0, 0.5, 0.25] and plan["width"] == 0.25
+    (stage,) = plan["stages"]
+    assert stage["batch"] == compose_recipe("dcp").data.batch_size
+    assert stage["max_steps"] == int(3600 / (30.0 * 0.25**2 * OVERHEAD)) >= MIN_STEPS
+
+
+def test_the_authors_width_when_the_budget_buys_enough_steps():
+    probe, calls = _cost(1.0)
+    assert plan_method("fmr", 1.0, probe)["width"] == 1.0 and len(calls) == 1
+
+
+def test_a_step_that_never_fits_is_refused():
+    with pytest.raises(cpu_budget.ConfigError, match="out of memory"):
+        plan_method("prnet", 1.0, lambda model, width, batch: float("inf"))
+
+
+def test_pointnetlks_classifier_stage_takes_its_share_of_the_same_budget():
+    probe, _ = _cost(2.0)
+    plan = plan_method("pointnetlk", 1.0, probe)
+    classifier, lk = (Stage(**s) for s in plan["stages"])
+    assert (classifier.model, lk.model) == ("pointnet_classifier", "pointnetlk")
+    assert classifier.budget_cpu_h + lk.budget_cpu_h == pytest.approx(1.0)
+    epochs = compose_recipe("pointnet_classifier").trainer.max_epochs, compose_recipe("pointnetlk").trainer.max_epochs
+    assert classifier.budget_cpu_h / lk.budget_cpu_h == pytest.approx(epochs[0] / epochs[1])  # same step cost here
+    assert "data=synthetic" in classifier.overrides
+
+
+def test_runs_resume_and_chain_the_classifier_features(tmp_path, monkeypatch):
+    probe, _ = _cost(2.0)
+    monkeypatch.setattr(cpu_budget, "plan_method", lambda method, budget_h: plan_method(method, budget_h, probe))
+    commands = []
+
+    def train(run_dir: Path, command: list[str]) -> int:
+        commands.append(command)
+        (run_dir / "checkpoints").mkdir(exist_ok=True)
+        (run_dir / "checkpoints" / "best-9.ckpt").write_bytes(b"")
+        return 0
+
+    monkeypatch.setattr(cpu_budget, "train_logged", train)
+    assert cpu_budget.run_method("pointnetlk", tmp_path, 1.0) == "pointnetlk: done"
+    classifier, lk = commands
+    best = tmp_path / "pointnetlk" / "classifier" / "checkpoints" / "best-9.ckpt"
+    assert f"model.network.feature_init={best}" in lk and not any(c.startswith("model.network.feature_init") for c in classifier)
+    assert "callbacks.clock.budget_cpu_hours=" + f"{json.loads((tmp_path / 'pointnetlk' / 'plan.json').read_text())['stages'][1]['budget_cpu_h']:.4f}" in lk
+    assert (tmp_path / "pointnetlk" / "pointnetlk" / "command.txt").read_text().startswith("-m src.train")
+    assert cpu_budget.run_method("pointnetlk", tmp_path, 1.0) == "pointnetlk: done" and len(commands) == 2  # done: skipped
+
+
+def test_an_interrupted_stage_resumes_from_its_last_checkpoint(tmp_path):
+    stage = Stage("dcp", "dcp", 0.25, 32, 1.0, 1.0, 1000)
+    assert not any(c.startswith("ckpt_path=") for c in stage_command(stage, tmp_path, []))
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"")
+    assert stage_command(stage, tmp_path, [])[-1] == f"ckpt_path={tmp_path / 'checkpoints' / 'last.ckpt'}"
+    assert f"trainer.val_check_interval={1000 // cpu_budget.VALIDATIONS}" in stage_command(stage, tmp_path, [])
+
+
+def _fake_stage(run_dir: Path, rows: list[dict], test: dict | None = None, done: bool = True) -> None:
+
+    (run_dir / "csv" / "version_0").mkdir(parents=True)
+    pd.DataFrame(rows).to_csv(run_dir / "csv" / "version_0" / "metrics.csv", index=False)
+    if test is not None:
+        (run_dir / "metrics.json").write_text(json.dumps({"metrics": test}))
+    if done:
+        (run_dir / "done.json").write_text("{}")
+
+
+def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp_path):
+    from benchmarks.studies.cpu_budget.report import collect, report
+
+    probe, _ = _cost(2.0)
+    for method in ("dcp", "pointnetlk"):
+        (tmp_path / method).mkdir()
+        (tmp_path / method / "plan.json").write_text(json.dumps(plan_method(method, 1.0, probe)))
+    val = lambda step, hours, err: {"step": step, "time/cpu_hours": hours, "val/Error(R)": err, "val/Error(t)": err / 100}  # noqa: E731
+    _fake_stage(tmp_path / "dcp" / "dcp", [val(9, 0.5, 30.0), val(19, 1.0, 20.0), {"step": 20, "time/cpu_hours": 1.01}],
+                {"Error(R)": 21.0, "Error(t)": 0.2})
+    _fake_stage(tmp_path / "pointnetlk" / "classifier", [{"step": 4, "time/cpu_hours": 0.25, "val/loss": 1.0}])
+    _fake_stage(tmp_path / "pointnetlk" / "pointnetlk", [val(9, 0.25, 40.0), val(19, 0.5, 35.0)], done=False)
+    curves, table = collect(tmp_path)
+    lk = curves[curves["method"] == "pointnetlk"]
+    assert list(lk["cpu_hours"]) == pytest.approx([0.5, 0.75]) and list(lk["Error(R)"]) == [40.0, 35.0]
+    table = table.set_index("method")
+    assert table.loc["dcp", "steps"] == 21 and table.loc["dcp", "CPU h"] == pytest.approx(1.01)
+    assert table.loc["dcp", "best val Error(R)"] == 20.0 and table.loc["dcp", "test Error(R)"] == 21.0
+    assert table.loc["pointnetlk", "steps"] == "5 + 20" and table.loc["pointnetlk", "CPU h"] == pytest.approx(0.75)
+    assert not table.loc["pointnetlk", "done"] and pd.isna(table.loc["pointnetlk", "test Error(R)"])
+    assert all(p.is_file() and p.stat().st_size > 0 for p in report(tmp_path, tmp_path / "out"))
+    (tmp_path / "dcp" / "dcp" / "checkpoints").mkdir()
+    (tmp_path / "dcp" / "dcp" / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+    (tmp_path / "dcp" / "dcp" / "command.txt").write_text(f"-m src.train model=dcp hydra.run.dir={tmp_path}/dcp/dcp\n")
+    archive = tmp_path / "archive"
+    assert cpu_budget.archive_runs(tmp_path, archive) == ["dcp", "pointnetlk"]
+    assert not list(archive.rglob("*.ckpt"))
+    assert (archive / "dcp" / "dcp" / "command.txt").read_text() == "-m src.train model=dcp hydra.run.dir=RUNS/dcp/dcp\n"
+    archived_curves, archived_table = collect(archive)  # the report from the committed copy: the same numbers
+    pd.testing.assert_frame_equal(archived_curves, curves)
+    pd.testing.assert_frame_equal(archived_table, table.reset_index())
+
+
+def test_the_probe_times_a_step_in_a_child_and_reports_one_that_does_not_fit_as_infinite(monkeypatch):
+    import math
+
+    assert 0 < cpu_budget.probe_step_seconds("pointnetlk_revisited", 0.0625, 4) < math.inf
+    monkeypatch.setattr(cpu_budget, "PROBE_MEMORY_BYTES", 256 * 2**20)  # not even torch fits
+    assert cpu_budget.probe_step_seconds("pointnetlk_revisited", 0.0625, 4) == math.inf
+
+
+def test_run_archives_each_method_when_it_returns(tmp_path, monkeypatch):
+    def fake_run(method, root, budget_h):
+        (root / method).mkdir(parents=True)
+        (root / method / "plan.json").write_text(json.dumps({"stages": [{"name": method}]}))
+        return f"{method}: done"
+
+    monkeypatch.setattr(cpu_budget, "run_method", fake_run)
+    assert cpu_budget.main(["run", "--root", str(tmp_path / "runs"), "--methods", "dcp,fmr", "--archive", str(tmp_path / "a")]) == 0
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["dcp", "fmr"] and (tmp_path / "a" / "fmr" / "plan.json").is_file()
+
+
+def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_beside_the_method(tmp_path, monkeypatch):
+    from benchmarks.studies.cpu_budget.report import collect
+
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 1.5, "checkpoints/start.ckpt", probe=lambda m, w, b: 2.0)
+    (stage,) = plan["stages"]
+    recipe = compose_recipe("omnet", "omnet_cpu")
+    assert (stage["width"], stage["batch"]) == (recipe.model_scale, recipe.data.batch_size)
+    assert stage["max_steps"] == int(1.5 * 3600 / (2.0 * OVERHEAD))
+    assert stage["overrides"] == ["recipe=omnet_cpu", "init_weights=checkpoints/start.ckpt"] and plan["beyond"] == "omnet_cpu"
+    commands = []
+
+    def train(run_dir: Path, command: list[str]) -> int:
+        commands.append(command)
+        _fake_stage(run_dir, [{"step": 9, "time/cpu_hours": 0.7, "val/Error(R)": 15.0, "val/Error(t)": 0.1,
+                               "time/mm_gflops": 50.0}],
+                    {"Error(R)": 16.0, "Error(t)": 0.1}, done=False)
+        return 0
+
+    monkeypatch.setattr(cpu_budget, "train_logged", train)
+    assert cpu_budget.run_method("omnet", tmp_path, 1.5, "omnet_beyond", lambda: plan) == "omnet_beyond: done"
+    assert "recipe=omnet_cpu" in commands[0] and "init_weights=checkpoints/start.ckpt" in commands[0]
+    assert cpu_budget.run_folders(tmp_path) == ["omnet_beyond"]
+    curves, table = collect(tmp_path)
+    assert list(curves["method"]) == ["omnet_beyond"] and table.loc[0, "test Error(R)"] == 16.0
+    assert table.loc[0, "mm GFLOP/s"] == 50.0
