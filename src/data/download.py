@@ -55,8 +55,9 @@ class RangeDownloader:
     it); an interrupted transfer is tried again from where it stopped while each try makes progress,
     at most ``attempts`` times, and is kept for a later run otherwise."""
 
-    def __init__(self, part: Path, timeout: float = 60, chunk_size: int = 1 << 20, attempts: int = 3):
-        self.part, self.timeout, self.chunk_size, self.attempts = Path(part), timeout, chunk_size, attempts
+    def __init__(self, part: Path, name: str, timeout: float = 60, chunk_size: int = 1 << 20, attempts: int = 3):
+        self.part, self.name, self.timeout = Path(part), name, timeout
+        self.chunk_size, self.attempts = chunk_size, attempts
 
     def __call__(self, url: str, output_file: str, pooch_obj: object = None) -> None:
         for attempt in range(self.attempts):
@@ -90,7 +91,7 @@ class RangeDownloader:
             length = response.headers.get("Content-Length")
             total = offset + int(length) if length else None
             with open(self.part, "ab" if offset else "wb") as f, tqdm(
-                total=total, initial=offset, unit="B", unit_scale=True, desc=self.part.name, disable=None
+                total=total, initial=offset, unit="B", unit_scale=True, desc=self.name, disable=None
             ) as bar:
                 try:
                     while chunk := response.read(self.chunk_size):
@@ -137,7 +138,7 @@ def download(url: str, dest: Path, known_hash: str | None = None, timeout: float
     try:
         with _quiet(pooch.get_logger(), logging.WARNING):
             pooch.retrieve(url, known_hash, fname=dest.name, path=dest.parent,
-                           downloader=RangeDownloader(part, timeout=timeout))
+                           downloader=RangeDownloader(part, dest.name, timeout=timeout))
     except ValueError as e:  # pooch: the checksum of the transfer does not match (the file is deleted)
         raise DownloadError(f"checksum mismatch: expected {known_hash}; the transfer is deleted") from e
     for stale in dest.parent.glob(f"{dest.name}.*.part"):  # other hosts' interrupted transfers of it

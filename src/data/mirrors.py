@@ -20,6 +20,8 @@ import tarfile
 from collections.abc import Sequence
 from pathlib import Path
 
+import pooch
+
 from src.data.datasets import Dataset, Mirror, Source
 from src.data.download import DownloadError, download
 from src.data.readers import Archive, layout_of
@@ -78,8 +80,12 @@ def _mirrors(source: Source) -> tuple[Mirror, ...]:
 def _first_intact(
     dataset: Dataset, mirrors: Sequence[Mirror], layouts: Sequence[str], downloads: Path, name: str | None = None,
 ) -> Path:
-    for mirror in mirrors:
-        dest = downloads / (name or mirror.file_name)
+    dests = {mirror: downloads / (name or mirror.file_name) for mirror in mirrors}
+    for dest in dict.fromkeys(dests.values()):  # an archive kept from an earlier run, before the network
+        kept = _kept(dest, [m for m, d in dests.items() if d == dest], layouts)
+        if kept is not None:
+            return kept
+    for mirror, dest in dests.items():
         try:
             return _verified(download(mirror.url, dest, mirror.known_hash), mirror, layouts)
         except DownloadError as e:
@@ -89,6 +95,28 @@ def _first_intact(
         f"no host served {archive} intact ({len(mirrors)} tried, one line each above); download it by hand and run "
         f"`python -m src.data.prepare {dataset.name} --source PATH` (PATH: that archive or its unpacked folder)"
     )
+
+
+def _kept(path: Path, mirrors: Sequence[Mirror], layouts: Sequence[str]) -> Path | None:
+    """``path`` verified as if one of ``mirrors`` (the hosts of that file name) had just served it
+    (deleted when none would have); None when absent."""
+    if not path.is_file():
+        return None
+    matches = {h: _hash_matches(path, h) for h in {m.known_hash for m in mirrors} if h}  # each hash read once
+    matching = [m for m in mirrors if m.known_hash is None or matches[m.known_hash]]
+    try:
+        if not matching:
+            raise DownloadError(f"checksum mismatch: expected {' or '.join(m.known_hash for m in mirrors)}")
+        return _verified(path, matching[0], layouts)
+    except DownloadError as e:
+        path.unlink(missing_ok=True)
+        log.warning(f"{path}: {e}; deleted")
+        return None
+
+
+def _hash_matches(path: Path, known_hash: str) -> bool:
+    alg, expected = known_hash.split(":")
+    return pooch.file_hash(str(path), alg) == expected
 
 
 def _verified(path: Path, mirror: Mirror, layouts: Sequence[str]) -> Path:

@@ -437,6 +437,8 @@ def prepare(
         raise DatasetError("--url is only used with --download")
     if download and sources:
         raise DatasetError("use either --source PATH or --download, not both")
+    if url and isinstance(download, str):
+        raise DatasetError(f"--download {download} --url: the layout of an archive given by --url is detected; drop {download}")
     if download:
         layout = download if isinstance(download, str) else None
         sources = [download_archive(record, cache_root / "downloads", layout=layout, url=url)]

@@ -69,6 +69,7 @@ def test_bad_hosts_are_skipped_one_line_each(archives, mirrors_file, tmp_path, c
         with caplog.at_level(logging.WARNING, logger="src.data.mirrors"):
             path = download_archive(RESAMPLED, tmp_path / "downloads")
     assert path == tmp_path / "downloads" / "moved.zip" and path.read_bytes() == good
+    assert download_archive(RESAMPLED, tmp_path / "downloads") == path  # the hosts are gone: verified, not fetched
     assert sorted(p.name for p in (tmp_path / "downloads").iterdir()) == ["moved.zip"]
     assert [r[1] for r in requests] == ["/404.zip", "/short.zip", "/wrong.zip", "/h5.zip", "/moved.zip", "/good.zip"]
     lines = [r.getMessage() for r in caplog.records]
@@ -87,7 +88,17 @@ def test_tar_archive_from_the_hub_is_unpacked(archives, mirrors_file, tmp_path, 
         path = download_archive(RESAMPLED, tmp_path / "downloads")
     assert path == tmp_path / "downloads" / "resampled" and path.is_dir()
     assert (path / "modelnet40_normal_resampled" / "modelnet40_shape_names.txt").is_file()
-    assert download_archive(RESAMPLED, tmp_path / "downloads") == path  # verified again, not fetched again
+    assert download_archive(RESAMPLED, tmp_path / "downloads") == path  # the host is gone: verified, not fetched
+
+
+def test_kept_file_that_fails_its_checksum_is_replaced(archives, mirrors_file, tmp_path, caplog):
+    good = archives["zip"]
+    (tmp_path / "downloads").mkdir()
+    (tmp_path / "downloads" / "r.zip").write_bytes(archives["h5"])
+    with serve({"/r.zip": File(good)}) as (url, requests):
+        mirrors_file({"pointnet2_resampled": [{"url": f"{url}/r.zip", "sha256": _sha(good)}]})
+        assert download_archive(RESAMPLED, tmp_path / "downloads").read_bytes() == good
+    assert len(requests) == 1 and "r.zip: checksum mismatch: expected sha256:" in caplog.text
 
 
 def test_wrong_size_and_damaged_tar_leave_nothing(archives, mirrors_file, tmp_path):
@@ -126,6 +137,7 @@ def test_no_host_answers_end_to_end(mirrors_file, tmp_path, capsys, caplog):
 @pytest.mark.parametrize(("argv", "message"), [
     (["stanford", "--download"], "stanford has no archive to download: pass --source PATH"),
     (["modelnet40_resampled", "--download", "pointnet_h5"], "modelnet40_resampled downloads no pointnet_h5 archive"),
+    (["modelnet40", "--download", "pointnet_h5", "--url", "http://x/y.zip"], "--url: the layout of an archive given"),
 ])
 def test_what_cannot_be_downloaded_is_one_line(tmp_path, capsys, argv, message):
     assert main([*argv, "--cache-root", str(tmp_path)]) == 2
