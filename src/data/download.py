@@ -37,6 +37,12 @@ class DownloadError(DatasetError):
     """One host did not serve the file intact; the message says what happened (no address)."""
 
 
+def hash_matches(path: Path, known_hash: str) -> bool:
+    """Whether ``path`` has the checksum ``known_hash`` (pooch's ``"alg:hex"``)."""
+    alg, expected = known_hash.split(":", 1)
+    return pooch.file_hash(str(path), alg) == expected.lower()
+
+
 def part_file(dest: Path, url: str) -> Path:
     """Where an interrupted transfer of ``url`` to ``dest`` is kept: one per address, so that a
     transfer is only ever resumed from the host it started on."""
@@ -152,7 +158,7 @@ def _hf_download(url: str, dest: Path, known_hash: str | None, timeout: float) -
     from huggingface_hub import hf_hub_download
     from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError
 
-    if dest.is_file() and (known_hash is None or pooch.file_hash(str(dest), _alg(known_hash)) == _hex(known_hash)):
+    if dest.is_file() and (known_hash is None or hash_matches(dest, known_hash)):
         return dest
     address = HF_ADDRESS.match(url)
     try:
@@ -166,16 +172,8 @@ def _hf_download(url: str, dest: Path, known_hash: str | None, timeout: float) -
         cause = e.__cause__ if isinstance(e, LocalEntryNotFoundError) and e.__cause__ else e
         first = str(cause).strip().splitlines()[0]
         raise DownloadError(first if isinstance(cause, HfHubHTTPError) else f"cannot connect ({first})") from e
-    if known_hash is not None and pooch.file_hash(str(fetched), _alg(known_hash)) != _hex(known_hash):
+    if known_hash is not None and not hash_matches(fetched, known_hash):
         fetched.unlink()
         raise DownloadError(f"checksum mismatch: expected {known_hash}; the transfer is deleted")
     os.replace(fetched, dest)
     return dest
-
-
-def _alg(known_hash: str) -> str:
-    return known_hash.split(":", 1)[0]
-
-
-def _hex(known_hash: str) -> str:
-    return known_hash.split(":", 1)[1]

@@ -20,10 +20,8 @@ import tarfile
 from collections.abc import Sequence
 from pathlib import Path
 
-import pooch
-
 from src.data.datasets import Dataset, Mirror, Source
-from src.data.download import DownloadError, download
+from src.data.download import DownloadError, download, hash_matches
 from src.data.readers import Archive, layout_of
 from src.errors import DatasetError
 
@@ -102,7 +100,7 @@ def _kept(path: Path, mirrors: Sequence[Mirror], layouts: Sequence[str]) -> Path
     (deleted when none would have); None when absent."""
     if not path.is_file():
         return None
-    matches = {h: _hash_matches(path, h) for h in {m.known_hash for m in mirrors} if h}  # each hash read once
+    matches = {h: hash_matches(path, h) for h in {m.known_hash for m in mirrors} if h}  # each read once
     matching = [m for m in mirrors if m.known_hash is None or matches[m.known_hash]]
     try:
         if not matching:
@@ -112,11 +110,6 @@ def _kept(path: Path, mirrors: Sequence[Mirror], layouts: Sequence[str]) -> Path
         path.unlink(missing_ok=True)
         log.warning(f"{path}: {e}; deleted")
         return None
-
-
-def _hash_matches(path: Path, known_hash: str) -> bool:
-    alg, expected = known_hash.split(":")
-    return pooch.file_hash(str(path), alg) == expected
 
 
 def _verified(path: Path, mirror: Mirror, layouts: Sequence[str]) -> Path:
@@ -131,7 +124,8 @@ def _verified(path: Path, mirror: Mirror, layouts: Sequence[str]) -> Path:
             raise DownloadError(f"it holds the {layout} layout, not {' or '.join(layouts)}")
         return archive
     except DownloadError:
-        shutil.rmtree(_unpack_folder(path), ignore_errors=True)
+        if path.name.endswith(_TAR_SUFFIXES):
+            shutil.rmtree(_unpack_folder(path), ignore_errors=True)
         path.unlink(missing_ok=True)
         raise
 
