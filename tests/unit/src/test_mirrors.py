@@ -166,3 +166,14 @@ def test_records_list_the_original_host_last():
         for source in dataset.downloads:
             assert source.mirrors[-1].evidence.startswith("original host"), source.layout
             assert len({m.file_name.split(".")[0] for m in source.mirrors}) == 1, source.layout
+
+
+def test_the_records_huggingface_mirror_through_its_endpoint(h5_dir, make_zip, tmp_path, monkeypatch):
+    """prepare modelnet40 --download pointnet_h5 with the record's own hosts: its first, the HuggingFace
+    mirror, answered by the loopback server through HF_ENDPOINT (huggingface_hub's endpoint setting)."""
+    data = make_zip(h5_dir).read_bytes()
+    with serve({"/datasets/Msun/modelnet40/resolve/main/modelnet40_ply_hdf5_2048.zip": HubFile(data)}) as (url, _):
+        monkeypatch.setenv("HF_ENDPOINT", url)
+        assert main(["modelnet40", "--download", "pointnet_h5", "--cache-root", str(tmp_path / "c")]) == 0
+    assert (tmp_path / "c" / "downloads" / "modelnet40_ply_hdf5_2048.zip").read_bytes() == data
+    assert open_cache(tmp_path / "c" / "modelnet40").manifest["source_layout"] == "pointnet_h5"
