@@ -3,7 +3,8 @@
 A :class:`Dataset` holds a dataset's facts: its name (the cache folder ``<cache_root>/<name>/``,
 ``data.dataset``, ``python -m src.data.prepare <name>``, ``conf/data/<name>.yaml``), the archive
 layouts it is prepared from (:class:`Source`: the manifest's ``source_layout``, the reader of
-:mod:`src.data.readers`, what such an archive holds, its official download), the sampling defaults
+:mod:`src.data.readers`, what such an archive holds, the hosts it is downloaded from, in order, each a
+:class:`Mirror` with what is published about its file and where that is published), the sampling defaults
 of ``prepare``, where its categories come from and whether axisymmetric categories are dropped.
 Derived from :data:`DATASETS`: the cache's dataset and layout lists and its prepare hint
 (:mod:`src.data.cache`), ``prepare``'s choices, layouts, URLs and defaults (:mod:`src.data.prepare`),
@@ -24,6 +25,39 @@ from src.utils.errors import ConfigError
 
 
 @dataclass(frozen=True)
+class Mirror:
+    """One host of an archive, and what is published about the file it serves.
+
+    Attributes:
+        url: the archive's address (a ``huggingface.co/datasets/<repo>/resolve/<revision>/<file>``
+            address is fetched with ``huggingface_hub``, any other with ``pooch``).
+        sha256, md5: its published checksum, verified after every download (``""``: none published;
+            then its size, when published, and its structure are what is verified).
+        size: its published size in bytes (None: none published).
+        evidence: where the address, checksum and size come from (repository, file, line), and what
+            is known of the host's state.
+    """
+
+    url: str
+    sha256: str = ""
+    md5: str = ""
+    size: int | None = None
+    evidence: str = ""
+
+    @property
+    def known_hash(self) -> str | None:
+        """The checksum in ``pooch``'s ``"alg:hex"`` form (None: none published)."""
+        if self.sha256:
+            return f"sha256:{self.sha256}"
+        return f"md5:{self.md5}" if self.md5 else None
+
+    @property
+    def file_name(self) -> str:
+        """The archive's file name (the last part of its address)."""
+        return self.url.split("?")[0].rstrip("/").rsplit("/", 1)[-1]
+
+
+@dataclass(frozen=True)
 class Source:
     """One archive layout a dataset is prepared from.
 
@@ -33,7 +67,8 @@ class Source:
             (``""``: generated, nothing to read). Layouts are detected in registry order: a catch-all
             layout (any mesh file) comes last.
         archive: what such an archive holds, for messages.
-        url: its official archive, fetched by ``prepare --download`` (the dataset's first source with one).
+        mirrors: the hosts ``prepare --download`` tries, in order (live mirrors first, the original
+            host last); empty: nothing to download.
         as_provided: ``""`` for meshes sampled here (``num_samplings`` x ``num_points``); else the points
             are stored as provided, one sampling per shape, and this is the cache's ``pair_sampling``.
         one_process: its shapes are rows of large files: read in one process (each file read once).
@@ -42,7 +77,7 @@ class Source:
     layout: str
     reader: str
     archive: str
-    url: str = ""
+    mirrors: tuple[Mirror, ...] = ()
     as_provided: str = ""
     one_process: bool = False
 
@@ -84,9 +119,9 @@ class Dataset:
         return tuple(s.layout for s in self.sources)
 
     @property
-    def url(self) -> str:
-        """The official archive ``prepare --download`` fetches (``""``: none)."""
-        return next((s.url for s in self.sources if s.url), "")
+    def downloads(self) -> tuple[Source, ...]:
+        """Its layouts that ``prepare --download`` can fetch; the first is fetched by default."""
+        return tuple(s for s in self.sources if s.mirrors)
 
     @property
     def build_defaults(self) -> dict[str, int]:
@@ -96,16 +131,55 @@ class Dataset:
 
 MODELNET40_CATEGORIES = "src.data.categories: the 40 categories of shape_names.txt, the official halves"
 
+# Where each download comes from. A checksum is recorded (and verified) only where a loader that
+# checks it after every download publishes it; no host publishes a size, so the structure of what
+# arrives (a readable archive in the expected layout) is verified instead.
+_PRINCETON_MD5 = "79bcee68fdf02f581938ba15f4cdca51"  # see the evidence of the first mirror below
+_PRINCETON = (
+    Mirror("https://modelnet.cs.princeton.edu/ModelNet40.zip", md5=_PRINCETON_MD5,
+           evidence="original host; url: arthurdjn/pytorch-pointcloud torch_pointcloud/datasets/modelnet.py, "
+                    "class ModelNet40 (data_url + resource); md5: the same class (its download checks it after each "
+                    "transfer)"),
+    Mirror("http://modelnet.cs.princeton.edu/ModelNet40.zip", md5=_PRINCETON_MD5,
+           evidence="original host over http; url: pyg-team/pytorch_geometric torch_geometric/datasets/modelnet.py:83 "
+                    "(kept when ModelNet10's url was changed, e574f59, 2025-09-01); md5: as above"),
+)
+_H5_ZIP = "modelnet40_ply_hdf5_2048.zip"
+_POINTNET_H5 = (
+    Mirror(f"https://huggingface.co/datasets/Msun/modelnet40/resolve/main/{_H5_ZIP}",
+           evidence="mirror; ma-xu/pointMLP-pytorch classification_ModelNet40/data.py:16 names it as the source of "
+                    "its release asset (f74ae62, 2024-11-25, 'Update modenet40 dataset link'); no checksum published"),
+    Mirror(f"https://github.com/ma-xu/pointMLP-pytorch/releases/download/Modenet40_dataset/{_H5_ZIP}",
+           evidence="mirror; ma-xu/pointMLP-pytorch classification_ModelNet40/data.py:17, the url its loader "
+                    "downloads since f74ae62 (the Stanford url commented out on line 14); no checksum published"),
+    Mirror(f"https://shapenet.cs.stanford.edu/media/{_H5_ZIP}",
+           evidence="original host (charlesq34/pointnet provider.py:13, '416MB' in README.md:40; "
+                    "yewzijian/RPMNet src/data_loader/datasets.py:227), replaced by the mirrors above in "
+                    "pointMLP's loader; guochengqian/openpoints dataset/modelnet/modelnet40_ply_2048_loader.py:70 "
+                    "declares md5 c9ab8e6dfb16f67afdab25e155c79e59 for it but its load_data never checks it: "
+                    "not enforced here"),
+)
+_POINTNET2_RESAMPLED = (
+    Mirror("https://huggingface.co/datasets/Pointcept/modelnet40_normal_resampled-compressed/resolve/main/"
+           "modelnet40_normal_resampled.tar.gz", md5="46ed374f8ef5f7504ec4870298772ac2",
+           evidence="mirror; Pointcept/Pointcept README.md:519 (added 06b802a, 2025-03-27); file name and md5: "
+                    "arthurdjn/pytorch-pointcloud torch_pointcloud/datasets/modelnet.py, class "
+                    "ModelNetNormalResampled (checked after each download by its download)"),
+    Mirror("https://shapenet.cs.stanford.edu/media/modelnet40_normal_resampled.zip",
+           evidence="original host (charlesq34/pointnet2 README.md:61, '1.6GB'; Pointcept "
+                    "pointcept/datasets/modelnet.py:5); no checksum published"),
+)
+
 DATASETS: tuple[Dataset, ...] = (
     Dataset(
         "modelnet40", "ModelNet40: the Princeton meshes or PointNet's h5 points", num_samplings=40, num_points=2048,
         categories=MODELNET40_CATEGORIES,
         sources=(
             Source("princeton_off", "PrincetonOffReader", "Princeton meshes (ModelNet40/<category>/{train,test}/*.off)",
-                   url="http://modelnet.cs.princeton.edu/ModelNet40.zip"),
+                   mirrors=_PRINCETON),
             Source("pointnet_h5", "PointNetH5Reader",
                    "PointNet h5 (modelnet40_ply_hdf5_2048: ply_data_*.h5 + shape_names.txt)",
-                   url="https://shapenet.cs.stanford.edu/media/modelnet40_ply_hdf5_2048.zip",
+                   mirrors=_POINTNET_H5,
                    as_provided="single_sampling", one_process=True),
         ),
     ),
@@ -116,7 +190,7 @@ DATASETS: tuple[Dataset, ...] = (
             Source("pointnet2_resampled", "ResampledReader",
                    "PointNet++ resampled (modelnet40_normal_resampled: modelnet40_shape_names.txt, "
                    "modelnet40_{train,test}.txt, <category>/<id>.txt)",
-                   url="https://shapenet.cs.stanford.edu/media/modelnet40_normal_resampled.zip",
+                   mirrors=_POINTNET2_RESAMPLED,
                    as_provided="disjoint_subsets"),
         ),
     ),

@@ -12,7 +12,9 @@ The layouts, URLs and sampling defaults of each dataset are its record's (:mod:`
 
 ``--source`` may be repeated: archives of one layout (e.g. one .zip per category) are merged into one
 cache (their categories, splits and fingerprints in one manifest; the order given does not matter).
-``--download`` fetches the official archive into ``<cache_root>/downloads/`` first. Re-running with
+``--download [LAYOUT]`` fetches the dataset's archive (its first layout with hosts, or LAYOUT) into
+``<cache_root>/downloads/`` first, from the first of its hosts that serves it intact
+(:mod:`src.data.mirrors`); ``--url URL`` names another host. Re-running with
 the same parameters and sources only verifies the cache; a corrupt, partial or differently built one
 is rebuilt.
 """
@@ -32,10 +34,9 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from multiprocessing import get_context
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from types import ModuleType
 from typing import NamedTuple
-from urllib.parse import urlparse
 
 import numpy as np
 from tqdm import tqdm
@@ -43,8 +44,8 @@ from tqdm import tqdm
 from src.data.cache import Cache, CacheWriter, check_cache, default_cache_root, file_sha256, open_cache, prepare_hint
 from src.data.categories import half_categories
 from src.data.datasets import DATASET_NAMES, DATASETS, get_dataset, source_of
-from src.data.download import download as download_file
 from src.data.mesh import MeshShape
+from src.data.mirrors import download_archive
 from src.data.readers import (
     READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, check_split_identities, layout_of,
 )
@@ -416,10 +417,10 @@ def _recorded_build(path: Path) -> dict | None:
 def prepare(
     dataset: str, *, source: Path | Sequence[Path] | None = None, cache_root: Path | None = None,
     num_samplings: int | None = None, num_points: int | None = None, seed: int = 0, workers: int = 1,
-    download: bool = False, url: str | None = None, force: bool = False, limit: int | None = None,
+    download: bool | str = False, url: str | None = None, force: bool = False, limit: int | None = None,
     normals: bool = False,
 ) -> Cache:
-    """What the command line does; see the module docstring."""
+    """What the command line does; see the module docstring. ``download``: True, or the layout to download."""
     cache_root = Path(cache_root or default_cache_root())
     record = get_dataset(dataset)
     if record.generated:
@@ -436,12 +437,11 @@ def prepare(
         raise DatasetError("--url is only used with --download")
     if download and sources:
         raise DatasetError("use either --source PATH or --download, not both")
+    if url and isinstance(download, str):
+        raise DatasetError(f"--download {download} --url: the layout of an archive given by --url is detected; drop {download}")
     if download:
-        if not url and not record.url:
-            raise DatasetError(f"{dataset} has no official archive to download: pass --source PATH (or --download --url URL)")
-        url = url or record.url
-        name = PurePosixPath(urlparse(url).path).name or f"{dataset}.zip"
-        sources = [download_file(url, cache_root / "downloads" / name)]
+        layout = download if isinstance(download, str) else None
+        sources = [download_archive(record, cache_root / "downloads", layout=layout, url=url)]
     if not sources:
         archives = " or ".join(record.layouts)
         raise DatasetError(f"{dataset} needs --source PATH (a {archives} folder or .zip) or --download")
@@ -475,8 +475,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--num-points", type=_positive_int, help=f"points per mesh sampling (default {_defaults('num_points')})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1, help="sampling processes")
-    p.add_argument("--download", action="store_true", help="fetch the official archive into <cache-root>/downloads/")
-    p.add_argument("--url", help="archive URL for --download (overrides the official one)")
+    layouts = [s.layout for d in DATASETS for s in d.downloads]
+    p.add_argument(
+        "--download", nargs="?", const=True, default=False, choices=layouts, metavar="LAYOUT",
+        help="fetch the archive into <cache-root>/downloads/ from the first of its hosts that serves it intact "
+             f"(the dataset's first layout, or LAYOUT: one of {', '.join(layouts)})",
+    )
+    p.add_argument("--url", help="archive URL for --download (instead of the dataset's hosts)")
     p.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
     p.add_argument("--normals", action="store_true",
                    help="mesh samplings: keep the sampled faces' normals (RPMNet's protocol; doubles the cache)")
