@@ -29,6 +29,9 @@ from tests.helpers.registration_helpers import CONF, TINY, compose_config
 ROOT = CONF.parent
 SHIPPED = ROOT / "checkpoints" / "omnet_unseen_categories_synthetic_ts_prnet.ckpt"
 
+#: The module holding ``main`` of a command that is a package (``python -m benchmarks.grid``).
+COMMAND_MODULES = {"benchmarks.grid": "benchmarks.grid.cli"}
+
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory) -> str:
@@ -123,7 +126,7 @@ def test_intervals_budgets_and_unknown_object_options_are_refused(override, mess
                                                "scan_pairs, stanford"),
 ])
 def test_hydra_override_errors_are_one_line_exit_2(module, argv, message, monkeypatch, capsys):
-    main = importlib.import_module(module).main
+    main = importlib.import_module(COMMAND_MODULES.get(module, module)).main
     monkeypatch.setattr(sys, "argv", [module, *argv])
     monkeypatch.setenv("HYDRA_FULL_ERROR", "0")  # (restored after the test)
     with pytest.raises(SystemExit) as info:
@@ -329,7 +332,7 @@ def test_unknown_top_level_keys_are_refused(override, hint):
 ])
 def test_unknown_top_level_keys_stop_every_entry_point_in_one_line(module, argv, message, tmp_path, monkeypatch,
                                                                    capsys):
-    main = importlib.import_module(module).main
+    main = importlib.import_module(COMMAND_MODULES.get(module, module)).main
     monkeypatch.setattr(sys, "argv", [module, *argv, f"hydra.run.dir={tmp_path}", f"output_dir={tmp_path}", *NO_LOGGING])
     with pytest.raises(SystemExit) as info:
         main()

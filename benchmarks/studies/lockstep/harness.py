@@ -41,10 +41,10 @@ DATA = ["data.num_workers=0", "data.persistent_workers=false", "data.pin_memory=
 
 
 def adapter(method: str) -> types.ModuleType:
-    """The adapter module of ``method`` (``benchmarks.<method>_lockstep``)."""
+    """The adapter module of ``method`` (``benchmarks.studies.lockstep.<method>``)."""
     if method not in METHODS:
         raise ConfigError(f"--method {method!r}: one of {METHODS}")
-    return importlib.import_module(f"benchmarks.{method}_lockstep")
+    return importlib.import_module(f"benchmarks.studies.lockstep.{method}")
 
 
 class Pair:
