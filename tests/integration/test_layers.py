@@ -84,3 +84,12 @@ def test_an_upward_import_breaks_the_contract(tmp_path):
     result = _lint(tmp_path)
     assert result.returncode != 0
     assert "src is not allowed to import baselines" in result.stdout
+
+
+def test_the_studies_are_not_installed():
+    """``pip install`` ships the product's packages and leaves the studies in the repository."""
+    setuptools = pytest.importorskip("setuptools")
+    find = tomllib.loads(PYPROJECT.read_text())["tool"]["setuptools"]["packages"]["find"]
+    found = set(setuptools.find_packages(where=str(ROOT), include=find["include"], exclude=find["exclude"]))
+    assert {"src.run", "src.utils", "benchmarks.grid", "benchmarks.tables", "baselines.learned"} <= found
+    assert not any(name.startswith("benchmarks.studies") for name in found)
