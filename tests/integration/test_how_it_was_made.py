@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import re
 import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from tests.helpers.paths import ROOT
+from tests.helpers.tracked import tracked_texts
 
 #: Phrases of the work rather than of the product, each a regular expression (case-insensitive).
 PATTERNS = (
@@ -35,16 +35,8 @@ def test_the_patterns_find_the_words_of_the_work_only():
 
 @pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs a git checkout")
 def test_no_tracked_text_names_how_the_framework_was_made():
-    listed = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"], cwd=ROOT,
-                            capture_output=True, check=True).stdout.decode().split("\0")
-    offending = []
-    for name in filter(None, listed):
-        path = ROOT / name
-        if not path.is_file() or path.resolve() == Path(__file__).resolve():
-            continue
-        data = path.read_bytes()
-        if b"\0" in data[:8192]:  # binary
-            continue
-        offending += [f"{name}:{i}: {line[:140]}" for i, line in offending_lines(data.decode(errors="replace"))]
+    this_file = Path(__file__).resolve().relative_to(ROOT).as_posix()
+    offending = [f"{name}:{i}: {line[:140]}" for name, text in tracked_texts() if name != this_file
+                 for i, line in offending_lines(text)]
     assert not offending, "words of how the framework was made (say what the product does, for its users):\n" + \
         "\n".join(offending)

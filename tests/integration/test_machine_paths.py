@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import re
 import shutil
-import subprocess
 import tempfile
 
 import pytest
 
 from tests.helpers.paths import ROOT
+from tests.helpers.tracked import tracked_texts
 
 #: Top folders of machines (written without their slashes, so that this file names no such path itself).
 MACHINE_ROOTS = tuple(f"/{name}/" for name in
@@ -33,16 +33,6 @@ def test_the_pattern_finds_machine_paths_only():
 
 @pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs a git checkout")
 def test_no_tracked_file_names_a_machine_path():
-    listed = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"], cwd=ROOT,
-                            capture_output=True, check=True).stdout.decode().split("\0")
-    offending = []
-    for name in filter(None, listed):
-        path = ROOT / name
-        if not path.is_file():  # deleted in the working tree
-            continue
-        data = path.read_bytes()
-        if b"\0" in data[:8192]:  # binary
-            continue
-        offending += [f"{name}:{i}: {line[:120]}" for i, line in machine_paths(data.decode(errors="replace"))]
+    offending = [f"{name}:{i}: {line[:120]}" for name, text in tracked_texts() for i, line in machine_paths(text)]
     assert not offending, "absolute machine paths (use paths relative to the repository, an env var or /tmp):\n" + \
         "\n".join(offending)
