@@ -63,6 +63,8 @@ def test_every_method_appears_in_the_tables_in_the_papers_order():
     rows = build_table(_tidy(reversed([m.display for m in METHODS])), "table1", metrics=["Error(R)"]).blocks[0].rows
     labels = [row.label for row in rows]
     assert sorted(labels) == sorted(m.display for m in METHODS)
+    assert labels[0] == get_method("identity").display and rows[0].reference  # the reference first, never ranked
+    labels = labels[1:]
     ranked = [get_method(label) for label in labels]
     positions = [m.table1 for m in ranked if m.table1 is not None]
     assert positions == sorted(positions) and ranked[-1].ours and sum(m.ours for m in METHODS) == 1
