@@ -25,6 +25,7 @@ from src.cli import hydra_command
 from src.errors import ConfigError, Interrupted, UserError, user_error_behind
 from src.files import write_text_atomic
 from src.paths import REPO_ROOT
+from src.resume import resume_command
 from src.signals import interruptible
 from src.validation import validate_config
 
@@ -87,7 +88,8 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         "rank": rank,
     }
     if interrupted:
-        record.update(reason=str(err), signal=err.signal_name, step=err.step, resume_from=err.checkpoint)
+        record.update(reason=str(err), signal=err.signal_name, step=err.step, resume_from=err.checkpoint,
+                      resume_command=err.resume)
     if HydraConfig.initialized():
         hc = HydraConfig.get()
         record["overrides"] = list(hc.overrides.task)
@@ -120,6 +122,8 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
                 with distributed_job_scope(f"on_failure={mode}"):
                     result = task(cfg)
         except Exception as err:
+            if isinstance(err, Interrupted) and err.checkpoint:
+                err.resume = resume_command(err.checkpoint)
             try:
                 path: Path | str = write_failure(output_dir, err)
             except UserError as problem:  # e.g. the disk that stopped the job is full: report the job's error
