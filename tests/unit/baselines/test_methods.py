@@ -4,6 +4,8 @@ adapters and the published weights derive from."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -121,3 +123,15 @@ def test_published_weights_name_their_method():
         assert network == get_method(entry.method).network
     with pytest.raises(ConfigError, match="published weights x: icp is not the key of a learned method"):
         Published(name="x", file="x", sha256="0", layout="dcp", source="", license="", trained_on="", method="icp")
+
+
+@pytest.mark.shared_data("reference/omnet-paper.tex")
+def test_the_registry_cites_omnet_by_the_papers_authors():
+    """It cited "Xu, Liu, Ye, Zhang, Zeng & Liu"."""
+    tex = shared_path("reference", "omnet-paper.tex").read_text()
+    block = re.search(r"\\author\{(.*?)\\\\\s*\\\\", tex, re.S).group(1)
+    block = re.sub(r"\\thanks\{[^}]*\}|\$[^$]*\$|\\hspace\{[^}]*\}", "", block)
+    authors = [name.strip() for name in block.splitlines() if name.strip()]
+    assert len(authors) == 5
+    cited = get_method("omnet").paper.split(", OMNet:")[0]
+    assert cited == ", ".join(authors[:-1]) + f" & {authors[-1]}"
