@@ -1,6 +1,6 @@
 """Results tables in the paper's layouts, as LaTeX (booktabs) and Markdown.
 
-    python -m benchmarks.tables multirun/sweep_table1/<time> --layout table1 --out results/tables
+    python -m benchmarks.tables multirun/sweep_table1/<time> --layout table1 --out results/tables   # default: beside the input
     python -m benchmarks.tables results.parquet --layout table3 --paper --standalone --compile
 
 Input: tidy frames (parquet or CSV) with columns ``method, experiment, sampling, partial, metric,
@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
+import shutil
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -456,12 +457,21 @@ def to_markdown(table: Table) -> str:
 
 # --- command line -------------------------------------------------------------------------------------
 
+LATEX_ENGINE = "pdflatex"
+
+
+def default_out(first_input: str | Path) -> Path:
+    """Where the tables go without ``--out``: beside the input they were made from (a multirun dir: inside it)."""
+    path = Path(first_input)
+    return path if path.is_dir() else path.parent
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.tables", description=__doc__.split("\n\n")[0])
     parser.add_argument("inputs", nargs="+", help="tidy frames (.parquet/.csv) or multirun dirs")
     parser.add_argument("--layout", choices=LAYOUTS, default="table1")
-    parser.add_argument("--out", type=Path, default=Path("results/tables"), help="folder for <name>.tex and <name>.md")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="folder for <name>.tex and <name>.md (default: beside the first input, in its folder)")
     parser.add_argument("--name", default=None, help="file name stem (default: the layout)")
     parser.add_argument("--metrics", default=",".join(PAPER_METRICS), help="comma-separated metrics (default: the paper's six)")
     parser.add_argument("--experiments", default=None, help="comma-separated experiments to keep (default: all)")
@@ -471,8 +481,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="compare with the paper even for non-ModelNet40 rows (a real-data experiment with its counterpart)")
     parser.add_argument("--caption", default=None, help="the table's own words (data, budget), put before the layout's caption")
     parser.add_argument("--standalone", action="store_true", help="also write <name>_standalone.tex (a full document)")
-    parser.add_argument("--compile", action="store_true", help="compile the standalone document with pdflatex (if installed)")
+    parser.add_argument("--compile", action="store_true", help="compile the standalone document with pdflatex (needs it installed)")
     args = parser.parse_args(argv)
+    if args.compile and shutil.which(LATEX_ENGINE) is None:
+        print(f"error: --compile needs {LATEX_ENGINE}, which is not installed: install a TeX distribution (Debian: "
+              "apt-get install texlive-latex-recommended), or leave out --compile", file=sys.stderr)
+        return 2
+    args.out = args.out or default_out(args.inputs[0])
     try:
         frame = read_inputs(args.inputs)
         paper = load_paper_tables(args.paper_dir) if args.paper else None
@@ -497,13 +512,11 @@ def main(argv: list[str] | None = None) -> int:
         written.append(args.out / f"{name}_standalone.tex")
         if args.compile:
             pdf = args.out / f"{name}_standalone.pdf"
-            ok, reason = compile_latex(document, pdf)
-            if ok is None:
-                print(f"note: not compiled ({reason})", file=sys.stderr)
-            elif ok:
+            ok, reason = compile_latex(document, pdf, engine=LATEX_ENGINE)
+            if ok:
                 written.append(pdf)
             else:
-                problems.append(f"pdflatex: {reason}")
+                problems.append(f"{LATEX_ENGINE}: {reason}")
     print(markdown)
     print("wrote " + ", ".join(map(str, written)))
     for problem in problems:
