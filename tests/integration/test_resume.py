@@ -150,6 +150,40 @@ def test_a_signal_saves_the_current_step_and_its_printed_command_resumes_in_plac
     assert len(list((run / "csv").glob("version_*"))) == 2  # both sessions in the same run dir
 
 
+def test_an_interrupted_multirun_resumes_every_job_in_its_folder_with_the_printed_command(uninterrupted):
+    """A sweep of two jobs (only the first paused, at step 3) stopped by SIGTERM; the printed command resumes the
+    sweep in its folder: the interrupted job from its last.ckpt (bit-for-bit), the other in its own folder."""
+    tmp, expected = uninterrupted
+    sweep, ready = tmp / "sweep", tmp / "ready_sweep"
+    pause = ["+callbacks.pause._target_=tests.helpers.registration_helpers.PauseAt", "+callbacks.pause.step=3,100",
+             f"+callbacks.pause.ready={ready}"]
+    command = [sys.executable, "-m", "src.train", "-m", *TINY, f"data.cache_root={tmp / 'cache'}", *SIGNAL_RUN, *pause,
+               f"hydra.sweep.dir={sweep}"]
+    process = subprocess.Popen(command, cwd=CONF.parent, env=_cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)
+    deadline = time.monotonic() + 600
+    while not ready.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    os.killpg(process.pid, signal.SIGTERM)
+    _, stderr = process.communicate(timeout=600)
+    assert process.returncode != 0
+    said = "resume it in its folder with: "
+    line = next(line for line in stderr.splitlines() if said in line)
+    resume = shlex.split(line.split(said, 1)[1])
+    assert resume[:4] == ["python", "-m", "src.train", "-m"] and resume[-2:] == [f"hydra.sweep.dir={sweep}", "ckpt_path=last"]
+    at_stop = last_weights(sweep / "0")
+
+    resumed = subprocess.run([sys.executable, *resume[1:]], cwd=CONF.parent, env=_cli_env(), capture_output=True,
+                             text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "dirpath has changed" not in resumed.stderr and "is not empty" not in resumed.stderr, resumed.stderr[-3000:]
+    assert_same_weights(last_weights(sweep / "0"), expected, at_stop)
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]  # no new job folders
+    for job in ("0", "1"):
+        assert not (sweep / job / "failure.json").exists()
+        assert torch.load(sweep / job / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == RESUME_STEPS
+
+
 def test_ckpt_path_last_resumes_the_run_dirs_own_checkpoint(uninterrupted):
     """``ckpt_path=last`` (the resume command of a sweep's jobs) takes the run dir's own last.ckpt."""
     tmp, expected = uninterrupted
