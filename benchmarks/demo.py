@@ -294,7 +294,7 @@ def pipeline_check_note(tidy: Any, mine: Entry, run: Run, card: dict[str, Any] |
     shown = ", ".join(f"{error:.1f}° at {step:,}" for step, error in curve)
     return (f"{note}. A useful model needs a longer run: the shipped one trained {training['steps_run']:,} steps of "
             f"batch {training['batch_size']}{_cpu_hours(card)}{beat} (validation curve: {shown}); its command is in "
-            f"its card, {card['name']}.json (README: Shipped checkpoints)")
+            f"its card, {card['name']}.json (docs/results.md: Shipped checkpoints)")
 
 
 # --- the comparison --------------------------------------------------------------------------------
@@ -428,7 +428,7 @@ def run_demo(run_dir: Path, overrides: Sequence[str] = (), shipped_dir: Path | N
     written = write_tables(table, run.path)
     print("\n" + written[0].read_text())
     print(f"wrote {written[0]} and {written[1]} (the grid's files: {run.path / 'demo'}/)\n"
-          "next: the full comparison grid, python -m benchmarks.grid (README: Benchmarks, sweeps and reports)")
+          "next: the full comparison grid, python -m benchmarks.grid (docs/benchmarks.md: The grid)")
     return written
 
 

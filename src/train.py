@@ -3,7 +3,8 @@
     python -m src.train                                   # OMNet on the embedded synthetic default
     python -m src.train +exp=unseen_categories            # the paper's experiment on ModelNet40 (once prepared)
     python -m src.train +exp=unseen_shapes data=synthetic trainer=smoke   # a few-minute CPU pipeline check
-    python -m src.train ... ckpt_path=outputs/.../checkpoints/last.ckpt   # resume
+    python -m src.train ... hydra.run.dir=<run dir> ckpt_path=last        # resume a run in its own folder
+    python -m src.train -m ... hydra.sweep.dir=<sweep dir> ckpt_path=last # resume every job of a multirun
     python -m src.train ... init_weights=checkpoints/<name>.ckpt          # start from a checkpoint's weights
     python -m src.train -m +sweep=noise                   # a paper study as a sweep (docs/sweeps.md)
 
@@ -18,6 +19,7 @@ rejects. After training: a run that made no optimisation step (nothing to test).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 import warnings
@@ -27,17 +29,19 @@ import lightning as L
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
-from src.run.checkpoint_io import check_checkpoint, read_checkpoint
 from src.config import register_resolvers
-from src.utils.errors import ConfigError
+from src.run.checkpoint_io import check_checkpoint, read_checkpoint
+from src.run.evaluated import evaluated_record
 from src.run.failures import job_main
+from src.run.info import require_prepared_paper_data
 from src.run.recorded import refuse_unread_overrides, refuse_unused_in_train
 from src.run.reporting import report_test_metrics, save_resolved_config
-from src.run.info import require_prepared_paper_data
-from src.run.evaluated import evaluated_record
+from src.run.resume import finished_record, resolve_ckpt_path, resuming_in_place
 from src.run.trainer import build_trainer
+from src.utils.errors import ConfigError
 
 register_resolvers()
+log = logging.getLogger(__name__)
 # The datamodule, not the loader, carries the mid-epoch data position (RegistrationDataModule.state_dict).
 warnings.filterwarnings("ignore", message="You're resuming from a checkpoint that ended before the epoch ended")
 
@@ -91,6 +95,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
     refuse_unused_in_train(cfg)
     refuse_unread_overrides(cfg)
     require_prepared_paper_data(cfg)
+    finished = finished_record(cfg)
+    if finished is not None:
+        log.info("ckpt_path=last: %s records a finished run (trained and tested); nothing to resume", finished)
+        return {}
+    cfg.ckpt_path = resolve_ckpt_path(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
     if cfg.init_weights:
@@ -104,7 +113,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     trainer = build_trainer(cfg)
     require_one_batch(datamodule, trainer)
     start = time.perf_counter()
-    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+    with resuming_in_place(cfg.ckpt_path, cfg.output_dir):
+        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     fit_seconds = time.perf_counter() - start
     require_training_steps(trainer, cfg)
     if not cfg.test_after_fit:

@@ -56,6 +56,7 @@ class FilterReg(NeedsPackage, Registrator):
 
     name = "filterreg"
     module, package = "probreg", "probreg"
+    extra = "probreg"  # built from its sdist: an extra of its own (pyproject.toml)
     config_cls = FilterRegConfig
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:

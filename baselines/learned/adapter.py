@@ -110,6 +110,32 @@ def shipped_checkpoint(method: str, target: str, directory: Path | None = None) 
     return min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
 
 
+def trained_on(card: dict[str, Any]) -> str:
+    """What a shipped checkpoint's card says it was trained on, e.g. ``real_airplane: airplane shapes of
+    modelnet40_resampled, TS, PRNet manner, rotations up to 45°, noise σ 0``."""
+    experiment, pair = card["experiment"], card["experiment"].get("pair", {})
+    categories = experiment.get("splits", {}).get("train", {}).get("categories", "?")
+    shapes = ", ".join(categories) if isinstance(categories, list) else categories
+    manner = {"prnet": "PRNet", "rpmnet": "RPMNet"}.get(experiment["partial"], experiment["partial"])
+    return (f"{experiment['task']}: {shapes} shapes of {experiment['dataset']}, {experiment['sampling'].upper()}, "
+            f"{manner} manner, rotations up to {pair.get('rot_mag', '?'):g}°, noise σ {pair.get('noise_sigma', 0):g}")
+
+
+#: Shipped checkpoints already announced in this process.
+_ANNOUNCED: set[Path] = set()
+
+
+def say_trained_on(method: str, checkpoint: Path) -> None:
+    """Once per process and checkpoint, a warning line: the shipped checkpoint ``method`` uses whatever the
+    clouds, and what it was trained on (its card)."""
+    if checkpoint in _ANNOUNCED:
+        return
+    _ANNOUNCED.add(checkpoint)
+    card = json.loads(checkpoint.with_suffix(".json").read_text())
+    log.warning("%s: no checkpoint given, using the shipped %s, trained on %s; for other data train one and pass "
+                "checkpoint=PATH", method, checkpoint.name, trained_on(card))
+
+
 def _used_as(target: str) -> str:
     """``; use it as method '<key>'`` for a registered network ``target`` (else nothing)."""
     method = method_of_network(target)
@@ -147,9 +173,9 @@ class LearnedRegistrator(Registrator):
             self._check_weights(cfg.weights)
             return
         if not cfg.checkpoint:
-            cfg.checkpoint = str(shipped_checkpoint(self.name, self.network_target))
-            self.shipped = Path(cfg.checkpoint).stem
-            log.info("%s: no checkpoint given, using the shipped %s", self.name, cfg.checkpoint)
+            shipped = shipped_checkpoint(self.name, self.network_target)
+            cfg.checkpoint, self.shipped = str(shipped), shipped.stem
+            say_trained_on(self.name, shipped)
         from src.run.checkpoint_io import read_checkpoint_network  # here: keeps `import baselines` light
 
         found = read_checkpoint_network(cfg.checkpoint)

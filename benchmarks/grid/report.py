@@ -13,14 +13,18 @@ from src.metrics import SUMMARY_METRICS
 
 
 def summary_table(tidy, metrics: Sequence[str] = SUMMARY_METRICS) -> str:
-    """A compact plain-text view: one row per cell, a few metrics, failures and time per pair."""
+    """A compact plain-text view: one row per cell, a few metrics (headers with units and ↓), failures and time
+    per pair."""
     import pandas as pd
+
+    from benchmarks.tables.render import metric_header
 
     wide = tidy.pivot_table(index=["partial", "experiment", "sampling", "method"], columns="metric", values="value",
                             aggfunc="first", sort=False)
     extra = tidy.groupby(["partial", "experiment", "sampling", "method"], sort=False)[["n_pairs", "n_failed", "seconds_per_pair"]].first()
     table = wide[[m for m in metrics if m in wide.columns]].join(extra)
     table["ms/pair"] = (table.pop("seconds_per_pair") * 1000).round(1)
+    table = table.rename(columns={m: metric_header(m) for m in [*metrics, "ms/pair"]})
     with pd.option_context("display.width", 200, "display.max_rows", 500, "display.float_format", "{:.4f}".format):
         return table.reset_index().to_string(index=False)
 

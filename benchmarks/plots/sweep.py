@@ -1,14 +1,18 @@
 """Figures of the paper's studies: error vs noise σ, vs overlap ratio, vs number of iterations; and the
 real scan pairs' errors against their true overlap.
 
-    python -m benchmarks.plots multirun/sweep_noise/<time> multirun/sweep_overlap/<time> --out results/figures
+    python -m benchmarks.plots multirun/sweep_noise/<time> multirun/sweep_overlap/<time> [--out DIR]
     python -m benchmarks.plots scan-pairs outputs/grid/scan_pairs [the grid's data.* overrides] [--out DIR]
 
 Inputs: collected frames (``results.parquet`` of :mod:`benchmarks.collect`, CSV) or multirun dirs.
 A figure is drawn when its x column (``noise_sigma``, ``overlap_ratio``, ``num_iters``) takes at
 least two values; each method (plus sampling / partial manner / experiment where those differ)
-is one line, the mean over repeated runs with their standard deviation as error bars. Written as
-``<out>/error_vs_<study>.png`` and ``.pdf``.
+is one line, the mean over repeated runs with their standard deviation as error bars (drawn, and in the legend,
+only where a point has several runs). Each y axis names its unit and direction (↓: lower is better), the x axis
+its unit. A job of a multirun that failed or is missing is named in the footnote (it is absent from the curves);
+a job trained with ``trainer=smoke`` (a few steps of a reduced-width network) is a pipeline check: its line is
+dashed and labelled so. Written as ``<out>/error_vs_<study>.png`` and ``.pdf`` (default ``<out>``: beside the
+first input).
 
 ``scan-pairs`` reads a ``+benchmark=scan_pairs`` grid (:mod:`benchmarks.grid`): every method's per-pair
 Error(R) against the pair's true overlap (``scan_pairs_error_vs_overlap.png``) and the errors binned by
@@ -35,11 +39,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
+import yaml  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from baselines.methods import display_name  # noqa: E402
 from benchmarks.tables.paper import attach_paper, canonical_experiment, default_paper_dir, load_paper_tables  # noqa: E402
-from benchmarks.tables.render import read_inputs  # noqa: E402
+from benchmarks.tables.render import HIGHER_IS_BETTER, default_out, read_inputs  # noqa: E402
 from src.utils.errors import UserError  # noqa: E402
 from src.metrics import ERROR_R, ERROR_T, MAE_R, MAE_T, RMSE_R, RMSE_T, SUCCESS_THRESHOLDS  # noqa: E402
 
@@ -55,22 +60,63 @@ class Figure:
 
 
 FIGURES = {
-    "noise": Figure("error_vs_noise", "noise_sigma", r"noise $\sigma$", (ERROR_R, ERROR_T),
+    "noise": Figure("error_vs_noise", "noise_sigma", r"noise $\sigma$ (the shapes' units; unit sphere)", (ERROR_R, ERROR_T),
                     "Errors under different noise levels"),
-    "overlap": Figure("error_vs_overlap", "overlap_ratio", "overlap ratio", (ERROR_R, ERROR_T),
+    "overlap": Figure("error_vs_overlap", "overlap_ratio", "overlap ratio (fraction of points kept)", (ERROR_R, ERROR_T),
                       "Isotropic errors of different overlapping ratios", reverse_x=True),
-    "iterations": Figure("error_vs_iterations", "num_iters", "iterations N",
+    "iterations": Figure("error_vs_iterations", "num_iters", "iterations N (count)",
                          (RMSE_R, MAE_R, ERROR_R, RMSE_T, MAE_T, ERROR_T),
                          "Anisotropic and isotropic errors over registration iterations"),
 }
 NO_PAPER_NUMBERS = "paper: no published numbers for this figure"
+#: The ``trainer`` choice of a pipeline check (conf/trainer/smoke.yaml): a few steps, for checking, not for results.
+PIPELINE_CHECK_TRAINER = "smoke"
+PIPELINE_CHECK = "pipeline check, trainer=smoke"
+
+
+def is_pipeline_check(run_dir: str | Path | None) -> bool:
+    """Whether the job in ``run_dir`` was trained with ``trainer=smoke`` (its ``.hydra/hydra.yaml``)."""
+    if run_dir is None or (isinstance(run_dir, float) and math.isnan(run_dir)):
+        return False
+    hydra_file = Path(run_dir) / ".hydra" / "hydra.yaml"
+    if not hydra_file.is_file():
+        return False
+    choices = (yaml.safe_load(hydra_file.read_text()) or {}).get("hydra", {}).get("runtime", {}).get("choices", {})
+    return choices.get("trainer") == PIPELINE_CHECK_TRAINER
+
+
+def read_sweeps(paths: Sequence[str | Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The tidy frame of ``paths`` (:func:`benchmarks.tables.render.read_inputs`) and the jobs that left no metrics
+    (failed or missing): from a multirun dir's collection, or the ``jobs.csv`` beside a collected frame."""
+    from benchmarks.collect import collect
+
+    failed = []
+    for raw in paths:
+        path = Path(raw)
+        if path.is_dir():
+            failed.append(collect(path).failures)
+        elif (path.parent / "jobs.csv").is_file():
+            jobs = pd.read_csv(path.parent / "jobs.csv")
+            failed.append(jobs[jobs["status"] != "ok"])
+    failed = [f for f in failed if not f.empty]
+    return read_inputs(paths), pd.concat(failed, ignore_index=True) if failed else pd.DataFrame()
+
+
+def failed_note(failed: pd.DataFrame, shown: int = 3) -> str | None:
+    """The footnote naming the jobs absent from the curves (None when every job has metrics)."""
+    if failed.empty:
+        return None
+    named = "; ".join(f"{row.get('sweep', '')}/{row['job']}: {row['status']} ({str(row['reason'])[:80]})"
+                      for _, row in failed.head(shown).iterrows())
+    more = f"; and {len(failed) - shown} more" if len(failed) > shown else ""
+    return f"{len(failed)} job(s) absent from the curves: {named}{more}."
 
 
 def _line_columns(frame: pd.DataFrame, x: str) -> list[str]:
     """Columns whose values tell lines apart: the method, and sampling / partial / experiment /
     dataset where they vary (the noise study's experiment only gains a ``_noise`` suffix)."""
     columns = ["method"]
-    for col in ("sampling", "partial", "experiment_base", "dataset"):
+    for col in ("sampling", "partial", "experiment_base", "dataset", "pipeline_check"):
         if col in frame and frame[col].nunique(dropna=True) > 1:
             columns.append(col)
     for col in ("sweep", "task"):  # one method swept in several sweeps: one line per sweep
@@ -93,8 +139,11 @@ def figure_data(frame: pd.DataFrame, figure: Figure, paper: pd.DataFrame | None)
         return pd.DataFrame()
     data["experiment"] = data["experiment"].map(canonical_experiment)
     data["experiment_base"] = data["experiment"].astype(str).str.replace(r"_noise$", "", regex=True)
+    runs = data["run_dir"] if "run_dir" in data.columns else pd.Series(None, index=data.index, dtype=object)
+    checks = {run: is_pipeline_check(run) for run in runs.dropna().unique()}
+    data["pipeline_check"] = runs.map(lambda run: checks.get(run, False)).astype(bool)
     keys = [c for c in ("method", "experiment", "experiment_base", "sampling", "partial", "dataset",
-                        "noise_sigma", "overlap_ratio", "num_iters", study) if c and c in data.columns]
+                        "noise_sigma", "overlap_ratio", "num_iters", study, "pipeline_check") if c and c in data.columns]
     keys = list(dict.fromkeys([*keys, figure.x, "metric"]))
     stats = data.groupby(keys, dropna=False)["value"].agg(["mean", "std", "count"]).reset_index()
     stats = stats.rename(columns={"mean": "value"})
@@ -106,7 +155,34 @@ def figure_data(frame: pd.DataFrame, figure: Figure, paper: pd.DataFrame | None)
     return stats
 
 
-def plot_figure(stats: pd.DataFrame, figure: Figure, out_dir: Path) -> list[Path]:
+def axis_label(metric: str) -> str:
+    """A metric's axis label with its unit and direction, e.g. ``Error(R) (degrees), lower is better ↓``."""
+    unit = "degrees" if metric.endswith("(R)") else "shapes' units" if metric.endswith("(t)") else None
+    direction = "higher is better ↑" if metric in HIGHER_IS_BETTER else "lower is better ↓"
+    return f"{metric}{f' ({unit})' if unit else ''}, {direction}"
+
+
+def _line_label(line_cols: list[str], key: tuple, checked: bool) -> str:
+    """A line's legend label: the method, then what tells it apart; a pipeline check says so."""
+    details = [str(k) for col, k in zip(line_cols[1:], key[1:]) if col != "pipeline_check"]
+    label = str(key[0]) + (f" ({', '.join(details)})" if details else "")
+    return f"{label} [{PIPELINE_CHECK}]" if checked else label
+
+
+def plot_figure(stats: pd.DataFrame, figure: Figure, out_dir: Path, failed: str | None = None) -> list[Path]:
+    """The figure of ``stats`` (:func:`figure_data`) as PNG and PDF in ``out_dir``; ``failed``: a footnote on the
+    jobs absent from it."""
+    fig = draw_figure(stats, figure, failed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / f"{figure.name}.png", out_dir / f"{figure.name}.pdf"]
+    for path in paths:
+        fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return paths
+
+
+def draw_figure(stats: pd.DataFrame, figure: Figure, failed: str | None = None) -> plt.Figure:
+    """The matplotlib figure of :func:`plot_figure` (one panel per metric)."""
     metrics = [m for m in figure.metrics if m in set(stats["metric"])]
     cols = min(3, len(metrics))
     rows = math.ceil(len(metrics) / cols)
@@ -115,22 +191,29 @@ def plot_figure(stats: pd.DataFrame, figure: Figure, out_dir: Path) -> list[Path
     groups = list(stats.groupby(line_cols, dropna=False, sort=True))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     has_paper = bool(stats["paper_value"].notna().any())
+    has_spread = bool((stats["count"] > 1).any())
+    checks = "pipeline_check" in stats and bool(stats["pipeline_check"].any())
     for ax, metric in zip(axes.flat, metrics):
         for i, (key, group) in enumerate(groups):
             key = key if isinstance(key, tuple) else (key,)
-            label = str(key[0]) + (f" ({', '.join(str(k) for k in key[1:])})" if len(key) > 1 else "")
+            checked = "pipeline_check" in group and bool(group["pipeline_check"].all())
+            label = _line_label(line_cols, key, checked)
             part = group[group["metric"] == metric].sort_values(figure.x)
             if part.empty:
                 continue
-            color = colors[i % len(colors)]
-            ax.errorbar(part[figure.x], part["value"], yerr=part["std"].fillna(0.0).where(part["count"] > 1, 0.0),
-                        marker="o", ms=4, lw=1.5, capsize=2, color=color, label=label)
+            color, style = colors[i % len(colors)], "--" if checked else "-"
+            if (part["count"] > 1).any():  # error bars only where there is a spread to show
+                ax.errorbar(part[figure.x], part["value"], yerr=part["std"].fillna(0.0).where(part["count"] > 1, 0.0),
+                            marker="o", ms=4, lw=1.5, ls=style, capsize=2, color=color, label=label)
+            else:
+                ax.plot(part[figure.x], part["value"], marker="o", ms=4, lw=1.5, ls=style, color=color, label=label)
             published = part[part["paper_value"].notna()]
             if not published.empty:
                 ax.scatter(published[figure.x], published["paper_value"], marker="*", s=90, color=color,
                            edgecolor="black", linewidth=0.6, zorder=5, label=f"{label}: paper (table)")
         ax.set_title(metric)
         ax.set_xlabel(figure.xlabel)
+        ax.set_ylabel(axis_label(metric))
         ax.grid(alpha=0.3)
         if figure.reverse_x:
             ax.invert_xaxis()
@@ -145,30 +228,32 @@ def plot_figure(stats: pd.DataFrame, figure: Figure, out_dir: Path) -> list[Path
     axes.flat[0].legend(handles, labels, fontsize=7, loc="best")
     note = ("Stars: the paper's table values at the same setting; the paper publishes this figure without numbers."
             if has_paper else "The paper publishes this figure without numbers: no paper values are shown.")
+    note += (" Points: the mean over runs; error bars: their standard deviation." if has_spread
+             else " Points: one run each (no error bars).")
     if "dataset" in stats and (stats["dataset"].astype(str) == "synthetic").any():
         note += " Synthetic data, not ModelNet40."
+    if checks:
+        note += f" Dashed [{PIPELINE_CHECK}]: a few steps of a reduced-width network, not a result."
+    lines = [note, *([failed] if failed else [])]
     fig.suptitle(figure.title)
-    fig.text(0.5, 0.01, note, ha="center", va="bottom", fontsize=8)
-    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / f"{figure.name}.png", out_dir / f"{figure.name}.pdf"]
-    for path in paths:
-        fig.savefig(path, dpi=150)
-    plt.close(fig)
-    return paths
+    fig.text(0.5, 0.01, "\n".join(lines), ha="center", va="bottom", fontsize=8, wrap=True)
+    fig.tight_layout(rect=(0, 0.04 * len(lines), 1, 0.97))
+    return fig
 
 
 def make_figures(frame: pd.DataFrame, out_dir: Path, studies: Sequence[str] = tuple(FIGURES),
-                 paper: pd.DataFrame | None = None) -> tuple[list[Path], list[str]]:
-    """Draw every study of ``studies`` the frame has data for; (files written, notes)."""
-    written, notes = [], []
+                 paper: pd.DataFrame | None = None, failed: pd.DataFrame | None = None) -> tuple[list[Path], list[str]]:
+    """Draw every study of ``studies`` the frame has data for; (files written, notes). ``failed``: the jobs
+    without metrics (:func:`read_sweeps`), named under every figure and in the notes."""
+    absent = failed_note(pd.DataFrame() if failed is None else failed)
+    written, notes = [], [f"note: {absent}"] if absent else []
     for study in studies:
         figure = FIGURES[study]
         stats = figure_data(frame, figure, paper)
         if stats.empty:
             notes.append(f"{study}: skipped (column {figure.x!r} has fewer than two values)")
             continue
-        written += plot_figure(stats, figure, out_dir)
+        written += plot_figure(stats, figure, out_dir, absent)
         if stats["paper_value"].notna().any():
             notes.append(f"{study}: paper table values marked at {int(stats['paper_value'].notna().sum())} points")
         else:
@@ -312,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
         return scan_pairs_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m benchmarks.plots", description=__doc__.split("\n\n")[0])
     parser.add_argument("inputs", nargs="+", help="collected frames (.parquet/.csv) or multirun dirs")
-    parser.add_argument("--out", type=Path, default=Path("results/figures"))
+    parser.add_argument("--out", type=Path, default=None, help="folder for the figures (default: beside the first input)")
     parser.add_argument("--figures", default=",".join(FIGURES), help=f"comma-separated, from {', '.join(FIGURES)}")
     parser.add_argument("--paper-dir", type=Path, default=None, help=f"paper CSV folder (default {default_paper_dir()})")
     parser.add_argument("--no-paper", action="store_true", help="do not look up the paper's table values")
@@ -323,14 +408,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown figure(s) {unknown}; choose from {list(FIGURES)}", file=sys.stderr)
         return 2
     try:
-        frame = read_inputs(args.inputs)
+        frame, failed = read_sweeps(args.inputs)
         paper = None
         if not args.no_paper:
             try:
                 paper = load_paper_tables(args.paper_dir)
             except FileNotFoundError as err:
                 print(f"note: {err}; plotting without paper values", file=sys.stderr)
-        written, notes = make_figures(frame, args.out, studies, paper)
+        written, notes = make_figures(frame, args.out or default_out(args.inputs[0]), studies, paper, failed)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

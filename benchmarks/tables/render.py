@@ -1,6 +1,6 @@
 """Results tables in the paper's layouts, as LaTeX (booktabs) and Markdown.
 
-    python -m benchmarks.tables multirun/sweep_table1/<time> --layout table1 --out results/tables
+    python -m benchmarks.tables multirun/sweep_table1/<time> --layout table1 --out results/tables   # default: beside the input
     python -m benchmarks.tables results.parquet --layout table3 --paper --standalone --compile
 
 Input: tidy frames (parquet or CSV) with columns ``method, experiment, sampling, partial, metric,
@@ -8,8 +8,9 @@ value`` and optionally ``source`` (several inputs are concatenated), or multirun
 the fly with :mod:`benchmarks.collect`). Cells with several rows (seeds, repeated runs) show their
 mean. A method given by several ``source`` values gets one row per source.
 
-Layouts (rows: methods in the paper's order, :func:`baselines.methods.paper_rank`; best of ours per
-column in bold, second underlined):
+Layouts (rows: methods in the paper's order, :func:`baselines.methods.paper_rank`, after the identity, a
+reference that is never ranked; best of ours per column in bold, second underlined; every header names
+its unit and direction, ↓ lower is better):
 
 * ``table1`` — Table 1: one block per experiment (unseen shapes, unseen categories, Gaussian
   noise, ...), an OS and a TS column per metric.
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
+import shutil
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -36,7 +38,7 @@ from typing import Sequence
 
 import pandas as pd
 
-from baselines.methods import paper_rank
+from baselines.methods import display_name, find_method, paper_rank
 from benchmarks.tables.paper import (
     EXPERIMENT_LABELS,
     PAPER_COUNTERPARTS,
@@ -56,6 +58,8 @@ EXPERIMENT_ORDER = tuple(e for paper in ("unseen_shapes", "unseen_categories", "
                          for e in (paper, *(ours for ours, cell in PAPER_COUNTERPARTS.items() if cell == paper)))
 ABLATION_ORDER = ("B", "B+M", "B+M+ML", "B+M+ML+F", "B+M+ML+F+C")
 MISSING = "--"
+#: The method every table shows as a reference row, never ranked.
+REFERENCE = "identity"
 
 
 # --- the intermediate table ---------------------------------------------------------------------
@@ -69,6 +73,7 @@ class Row:
     ranks: list[int | None] = field(default_factory=list)
     counts: list[int] = field(default_factory=list)
     group: int = 0  # rule between groups (Table 3)
+    reference: bool = False  # the identity (no registration): shown, never ranked
 
 
 @dataclass
@@ -99,6 +104,26 @@ METRIC_UNITS = {RMSE_R: "°", MAE_R: "°", ERROR_R: "°", "ms/pair": "ms"}
 
 def _direction(metric: str) -> str:
     return "↑" if metric in HIGHER_IS_BETTER else "↓"
+
+
+def units_sentence(metrics: Sequence[str]) -> str:
+    """What the headers' units and arrows mean, for a caption."""
+    directions = sorted({_direction(m) for m in metrics}, reverse=True)
+    arrows = {"↓": "lower is better (↓)", "↑": "higher is better (↑)"}
+    said = " in every column" if len(directions) == 1 else " where marked"
+    rotations = [m for m in metrics if METRIC_UNITS.get(m) == "°"]
+    translations = [m for m in metrics if m.endswith("(t)")]
+    units = ([f"{', '.join(rotations)} in degrees"] if rotations else []) + (
+        [f"{', '.join(translations)} in the data's units (ModelNet40 and the synthetic shapes lie in the unit sphere)"]
+        if translations else [])
+    return (" and ".join(arrows[d] for d in directions).capitalize() + said
+            + (": " + "; ".join(units) if units else "") + ".")
+
+
+def is_reference(method: str) -> bool:
+    """Whether ``method`` (a key, display name or table label) is the identity: a reference, never ranked."""
+    found = find_method(method) or find_method(method.split(" (")[0])
+    return found is not None and found.key == REFERENCE
 
 
 def decimals(metric: str) -> int:
@@ -166,9 +191,9 @@ def aggregate(frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def _method_sort_key(name: str) -> tuple:
-    """The paper's row order (:func:`baselines.methods.paper_rank`; a label's `` (...)`` suffix aside):
-    its baselines, then methods it does not have (alphabetically), then OMNet."""
-    return (*paper_rank(name.split(" (")[0]), name.lower())
+    """The paper's row order (:func:`baselines.methods.paper_rank`; a label's `` (...)`` suffix aside),
+    after the identity: its baselines, then methods it does not have (alphabetically), then OMNet."""
+    return (not is_reference(name), *paper_rank(name.split(" (")[0]), name.lower())
 
 
 def table3_group(name: str) -> tuple[int, float, str]:
@@ -186,7 +211,7 @@ def table3_group(name: str) -> tuple[int, float, str]:
 
 
 def _rank(rows: list[Row], n_columns: int, metrics: list[str]) -> None:
-    ours = [r for r in rows if r.kind == "ours"]
+    ours = [r for r in rows if r.kind == "ours" and not r.reference]
     for r in ours:
         r.ranks = [None] * n_columns
     for c in range(n_columns):
@@ -253,7 +278,8 @@ def build_table(
                 get = lambda col, key: (float(sub.loc[key, col]) if key in sub.index and pd.notna(sub.loc[key, col]) else None)  # noqa: E731
                 group = table3_group(method)[0] if layout == "table3" else 0
                 ours = Row(method, [get("value", k) for k in columns], "ours", group=group,
-                           counts=[int(sub.loc[k, "n"]) if k in sub.index else 0 for k in columns])
+                           counts=[int(sub.loc[k, "n"]) if k in sub.index else 0 for k in columns],
+                           reference=is_reference(method))
                 rows.append(ours)
                 if paper is not None:
                     published = [get("paper_value", k) for k in columns]
@@ -288,8 +314,11 @@ def build_table(
         "table2": "Registration errors on twice-sampled (TS) data (layout of the paper's Table 2)",
         "table3": "Ablation studies on TS data (layout of the paper's Table 3)",
     }
-    caption = (f"{caption.rstrip('.')}. " if caption else "") + titles[layout] + ". Best of ours per column in bold, second underlined."
-    return Table(layout, list(metrics), samplings, blocks, caption, f"tab:{layout}", notes)
+    references = sorted({display_name(r.label) for b in blocks for r in b.rows if r.reference})
+    ranked = (f"{' and '.join(references)}: the reference, never ranked; best" if references else "Best")
+    caption = (f"{caption.rstrip('.')}. " if caption else "") + titles[layout] + (
+        f". {units_sentence(metrics)} {ranked} of ours per column in bold, second underlined.")
+    return Table(layout, list(metrics), samplings, blocks, caption, f"tab:{layout}", notes, header_units=True)
 
 
 # --- rendering --------------------------------------------------------------------------------------
@@ -302,13 +331,15 @@ FRAGMENT_NEEDS = (f"% a table* fragment: \\input it in a document that loads \\u
 _LATEX_SPECIAL = {"&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r"\{", "}": r"\}",
                   "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "\\": r"\textbackslash{}"}
 
+_LATEX_SYMBOLS = {"×": r"$\times$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "°": r"$^\circ$"}
+
 
 def latex_escape(text: str) -> str:
     """Escape LaTeX specials; λ / ``lambda=`` become ``$\\lambda$=``."""
     match = re.match(r"^\s*(?:\$\\lambda\$|\\lambda|λ|lambda)\s*=\s*(.+)$", text)
     if match:
         return r"$\lambda$=" + latex_escape(match.group(1))
-    return "".join(_LATEX_SPECIAL.get(ch, ch) for ch in text).replace("×", r"$\times$")
+    return "".join(_LATEX_SPECIAL.get(ch, _LATEX_SYMBOLS.get(ch, ch)) for ch in text)
 
 
 def _metric_tex(metric: str, units: bool = False) -> str:
@@ -319,6 +350,11 @@ def _metric_tex(metric: str, units: bool = False) -> str:
     unit = " ($^\\circ$)" if METRIC_UNITS.get(metric) == "°" else ""
     arrow = r"$\uparrow$" if _direction(metric) == "↑" else r"$\downarrow$"
     return f"{text}{unit} {arrow}"
+
+
+def metric_header(metric: str) -> str:
+    """A metric's plain-text header with its unit and direction, e.g. ``Error(R) (°) ↓``."""
+    return _metric_md(metric, units=True)
 
 
 def _metric_md(metric: str, units: bool) -> str:
@@ -421,12 +457,21 @@ def to_markdown(table: Table) -> str:
 
 # --- command line -------------------------------------------------------------------------------------
 
+LATEX_ENGINE = "pdflatex"
+
+
+def default_out(first_input: str | Path) -> Path:
+    """Where the tables go without ``--out``: beside the input they were made from (a multirun dir: inside it)."""
+    path = Path(first_input)
+    return path if path.is_dir() else path.parent
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.tables", description=__doc__.split("\n\n")[0])
     parser.add_argument("inputs", nargs="+", help="tidy frames (.parquet/.csv) or multirun dirs")
     parser.add_argument("--layout", choices=LAYOUTS, default="table1")
-    parser.add_argument("--out", type=Path, default=Path("results/tables"), help="folder for <name>.tex and <name>.md")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="folder for <name>.tex and <name>.md (default: beside the first input, in its folder)")
     parser.add_argument("--name", default=None, help="file name stem (default: the layout)")
     parser.add_argument("--metrics", default=",".join(PAPER_METRICS), help="comma-separated metrics (default: the paper's six)")
     parser.add_argument("--experiments", default=None, help="comma-separated experiments to keep (default: all)")
@@ -436,8 +481,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="compare with the paper even for non-ModelNet40 rows (a real-data experiment with its counterpart)")
     parser.add_argument("--caption", default=None, help="the table's own words (data, budget), put before the layout's caption")
     parser.add_argument("--standalone", action="store_true", help="also write <name>_standalone.tex (a full document)")
-    parser.add_argument("--compile", action="store_true", help="compile the standalone document with pdflatex (if installed)")
+    parser.add_argument("--compile", action="store_true", help="compile the standalone document with pdflatex (needs it installed)")
     args = parser.parse_args(argv)
+    if args.compile and shutil.which(LATEX_ENGINE) is None:
+        print(f"error: --compile needs {LATEX_ENGINE}, which is not installed: install a TeX distribution (Debian: "
+              "apt-get install texlive-latex-recommended), or leave out --compile", file=sys.stderr)
+        return 2
+    args.out = args.out or default_out(args.inputs[0])
     try:
         frame = read_inputs(args.inputs)
         paper = load_paper_tables(args.paper_dir) if args.paper else None
@@ -462,13 +512,11 @@ def main(argv: list[str] | None = None) -> int:
         written.append(args.out / f"{name}_standalone.tex")
         if args.compile:
             pdf = args.out / f"{name}_standalone.pdf"
-            ok, reason = compile_latex(document, pdf)
-            if ok is None:
-                print(f"note: not compiled ({reason})", file=sys.stderr)
-            elif ok:
+            ok, reason = compile_latex(document, pdf, engine=LATEX_ENGINE)
+            if ok:
                 written.append(pdf)
             else:
-                problems.append(f"pdflatex: {reason}")
+                problems.append(f"{LATEX_ENGINE}: {reason}")
     print(markdown)
     print("wrote " + ", ".join(map(str, written)))
     for problem in problems:

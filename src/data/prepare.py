@@ -155,6 +155,10 @@ def _reuse_or_build(out: Path, expected: dict, force: bool, build: Callable[[], 
         return _reuse(out, expected, force) or build()
 
 
+#: Caches this process already said were up to date.
+_REPORTED_UP_TO_DATE: set[Path] = set()
+
+
 def _reuse(out: Path, expected: dict, force: bool, say_why: bool = True) -> Cache | None:
     """The existing cache when valid for ``expected`` (hashes verified) and not ``force``d (``say_why``:
     log why an existing one is not)."""
@@ -162,8 +166,11 @@ def _reuse(out: Path, expected: dict, force: bool, say_why: bool = True) -> Cach
         return None
     problem = check_cache(out, expected)
     if problem is None:
-        log.info(f"cache up to date: {out} (hashes verified)")
+        if out not in _REPORTED_UP_TO_DATE:  # once per process: a grid reads the same cache for every cell
+            log.info(f"cache up to date: {out} (hashes verified)")
+            _REPORTED_UP_TO_DATE.add(out)
         return open_cache(out)
+    _REPORTED_UP_TO_DATE.discard(out)
     if out.exists() and say_why:
         log.info(f"rebuilding: {problem}")
     return None

@@ -20,12 +20,13 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from src.run.distributed import distributed_job_scope, global_rank
 from src.run.cli import hydra_command
+from src.run.distributed import distributed_job_scope, global_rank
+from src.run.resume import resume_command
 from src.utils.errors import ConfigError, Interrupted, UserError, user_error_behind
 from src.utils.files import write_text_atomic
-from src.utils.paths import REPO_ROOT
 from src.utils.interrupts import interruptible
+from src.utils.paths import REPO_ROOT
 from src.validation import validate_config
 
 log = logging.getLogger(__name__)
@@ -87,7 +88,8 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         "rank": rank,
     }
     if interrupted:
-        record.update(reason=str(err), signal=err.signal_name, step=err.step, resume_from=err.checkpoint)
+        record.update(reason=str(err), signal=err.signal_name, step=err.step, resume_from=err.checkpoint,
+                      resume_command=err.resume)
     if HydraConfig.initialized():
         hc = HydraConfig.get()
         record["overrides"] = list(hc.overrides.task)
@@ -120,6 +122,8 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
                 with distributed_job_scope(f"on_failure={mode}"):
                     result = task(cfg)
         except Exception as err:
+            if isinstance(err, Interrupted) and err.checkpoint:
+                err.resume = resume_command(err.checkpoint)
             try:
                 path: Path | str = write_failure(output_dir, err)
             except UserError as problem:  # e.g. the disk that stopped the job is full: report the job's error

@@ -60,7 +60,7 @@ def require_prepared_paper_data(cfg: DictConfig) -> None:
     raise DatasetError(
         f"this run trains on ModelNet40 (the paper's data; the experiment's default), which is not prepared under "
         f"{root}: prepare it with `python -m src.data.prepare modelnet40 --source PATH/ModelNet40.zip` (or --download; "
-        f"README: Data), or try the pipeline on the embedded synthetic data with a CPU-sized run: `{synthetic}`"
+        f"docs/data.md: Data), or try the pipeline on the embedded synthetic data with a CPU-sized run: `{synthetic}`"
     )
 
 
@@ -157,6 +157,6 @@ class TrainingForecast(L.Callback):
             advice = cpu_sized(type(getattr(pl_module, "network", pl_module)).__name__)
             advice += "" if "trainer.max_steps" in advice else " trainer.max_steps=N"
             line += (f"\ntrain: {total:,} steps would take ~{format_duration(total * seconds_per_step)} on this CPU: for a "
-                     f"CPU-sized run add `{advice}` (README: Expected runtimes), or train "
+                     f"CPU-sized run add `{advice}` (docs/results.md: Expected runtimes), or train "
                      "on a GPU (trainer=gpu)")
         return line

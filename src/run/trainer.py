@@ -11,11 +11,12 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig
 
 from src.run.checkpoint_io import AtomicCheckpointIO
-from src.utils.files import remove_stale_temporaries
 from src.run.lightning_compat import patch_ddp_subprocess_launcher
-from src.run.quiet import quiet_lightning
+from src.run.progress import StepProgressBar
+from src.run.quiet import quiet_lightning, quiet_step_budget
 from src.run.signals import CheckpointOnSignal
 from src.run.wandb_logging import wandb_callbacks
+from src.utils.files import remove_stale_temporaries
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +32,7 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
     removed here, before training starts.
     """
     quiet_lightning()
+    quiet_step_budget(cfg.trainer)
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()]
     callbacks = [
         hydra.utils.instantiate(c)
@@ -42,5 +44,7 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
             for path in remove_stale_temporaries(Path(callback.dirpath)):
                 log.info("removed %s, a partial checkpoint left by a killed run", path)
     callbacks += wandb_callbacks(cfg, loggers)  # the wandb tables and 3D objects (src/run/wandb_logging.py)
+    if cfg.trainer.get("enable_progress_bar", True):
+        callbacks.append(StepProgressBar())  # Epoch N, no v_num, a resumed epoch's true total (src/run/progress.py)
     patch_ddp_subprocess_launcher()
     return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks, plugins=[AtomicCheckpointIO()])

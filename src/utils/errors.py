@@ -51,9 +51,16 @@ class Interrupted(Exception):
     def __init__(self, signum: int, step: int | None = None, checkpoint: str | None = None) -> None:
         self.signum, self.step, self.checkpoint = signum, step, checkpoint
         self.signal_name = signal.Signals(signum).name
-        where = "" if step is None else f" at step {step}"
-        resume = f"; resume with ckpt_path={checkpoint}" if checkpoint else ""
-        super().__init__(f"interrupted by {self.signal_name}{where}{resume}")
+        #: The command that resumes the run in its own folder (:func:`src.run.resume.resume_command`), once known.
+        self.resume: str | None = None
+        super().__init__(signum, step, checkpoint)
+
+    def __str__(self) -> str:
+        where = "" if self.step is None else f" at step {self.step}"
+        if self.resume:
+            return f"interrupted by {self.signal_name}{where}; resume it in its folder with: {self.resume}"
+        resume = f"; resume with ckpt_path={self.checkpoint}" if self.checkpoint else ""
+        return f"interrupted by {self.signal_name}{where}{resume}"
 
     @property
     def exit_code(self) -> int:

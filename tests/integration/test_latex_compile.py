@@ -60,3 +60,23 @@ def test_a_fragment_names_the_packages_it_needs_and_the_standalone_document_load
     assert needs.startswith("%") and all(package in needs for package in LATEX_PACKAGES)
     assert all(f"\\usepackage{{{package}}}" in document for package in LATEX_PACKAGES)
     assert check_latex(fragment) == [] and check_latex(document) == []
+
+
+def test_compile_without_pdflatex_is_one_error_line_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    """It exited 0 after a note, having written results/ into the working directory."""
+    (tmp_path / "bin").mkdir()
+    monkeypatch.setenv("PATH", str(tmp_path / "bin"))
+    frame = _frame(tmp_path)
+    code = main([str(frame), "--metrics", "Error(R)", "--compile"])
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(errors) == 1 and errors[0].startswith("error: --compile needs pdflatex")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bin", "ours.csv"]
+
+
+def test_tables_go_beside_the_frame_they_were_made_from(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the old default wrote results/tables here
+    (tmp_path / "grid").mkdir()
+    frame = _frame(tmp_path / "grid")
+    assert main([str(frame), "--metrics", "Error(R)"]) == 0
+    assert {"table1.tex", "table1.md"} <= {p.name for p in frame.parent.iterdir()}
+    assert not (tmp_path / "results").exists()

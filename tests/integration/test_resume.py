@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 import os
 import random
+import shlex
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,10 +21,10 @@ from src.run.callbacks import RngState, set_rng_states
 from src.data.dataset import EpochSampler
 from src.utils.errors import CheckpointError, ConfigError
 from src.run.reporting import read_csv_logs
-import src.train
 from src.train import train
 from tests.helpers.registration_helpers import (
     CONF,
+    KillAt,
     RESUME_RUN,
     RESUME_STEPS,
     TINY,
@@ -82,17 +84,20 @@ def test_stochastic_network_resumes_with_its_rng_state(uninterrupted):
 SIGNAL_RUN = [o for o in RESUME_RUN if "periodic_checkpoint" not in o] + [f"trainer.max_steps={RESUME_STEPS}"]
 
 
+def _cli_env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(CONF.parent / "tests"), os.environ.get("PYTHONPATH", "")]),
+            "OMP_NUM_THREADS": "1"}
+
+
 def _signalled_cli_run(tmp, run, signum: int) -> subprocess.CompletedProcess:
     """``python -m src.train`` (the real command, one loader worker) paused at the start of step 3, sent
     ``signum`` from here to its whole process group, as ``timeout`` and a terminal's Ctrl+C do."""
     ready = tmp / f"ready{signum}"
     pause = ["+callbacks.pause._target_=tests.helpers.registration_helpers.PauseAt", "+callbacks.pause.step=3",
              f"+callbacks.pause.ready={ready}"]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(CONF.parent / "tests"), os.environ.get("PYTHONPATH", "")]),
-           "OMP_NUM_THREADS": "1"}
     command = [sys.executable, "-m", "src.train", *TINY, f"data.cache_root={tmp / 'cache'}", *SIGNAL_RUN, *pause,
                "data.num_workers=1", f"hydra.run.dir={run}"]
-    process = subprocess.Popen(command, cwd=CONF.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    process = subprocess.Popen(command, cwd=CONF.parent, env=_cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, start_new_session=True)
     deadline = time.monotonic() + 600
     while not ready.exists() and process.poll() is None and time.monotonic() < deadline:
@@ -102,26 +107,93 @@ def _signalled_cli_run(tmp, run, signum: int) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
 
 
+def _best_tracking(checkpoint) -> dict:
+    """The best-checkpoint state of the ``val/score`` ModelCheckpoint saved in ``checkpoint``."""
+    states = torch.load(checkpoint, weights_only=False)["callbacks"]
+    return next(state for key, state in states.items() if key.startswith("ModelCheckpoint") and "val/score" in key)
+
+
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
-def test_a_signal_saves_the_current_step_records_it_and_resumes_bit_for_bit(uninterrupted, signum):
+def test_a_signal_saves_the_current_step_and_its_printed_command_resumes_in_place(uninterrupted, signum):
     """SIGTERM exited 0 with no checkpoint, metrics or failure.json (a sweep counted it a success); SIGINT
-    lost the steps since the last periodic checkpoint."""
+    lost the steps since the last periodic checkpoint; the printed ckpt_path alone resumed into a new run dir,
+    where Lightning dropped the best-checkpoint tracking."""
     tmp, expected = uninterrupted
     run = tmp / f"signal{signum}"
     result = _signalled_cli_run(tmp, run, signum)
     last = run / "checkpoints" / "last.ckpt"
-    line = f"interrupted by {signal.Signals(signum).name} at step 4; resume with ckpt_path={last}"
     assert result.returncode == 128 + signum, result.stderr[-3000:]
-    assert result.stderr.strip().splitlines()[-1] == f"error: {line}"
+    line = result.stderr.strip().splitlines()[-1]
+    prefix = f"error: interrupted by {signal.Signals(signum).name} at step 4; resume it in its folder with: "
+    assert line.startswith(prefix), line
+    command = shlex.split(line[len(prefix):])
+    assert command[:3] == ["python", "-m", "src.train"] and command[-2:] == [f"hydra.run.dir={run}", f"ckpt_path={last}"]
     failure = json.loads((run / "failure.json").read_text())
-    assert failure["status"] == "interrupted" and failure["reason"] == line and failure["step"] == 4
+    assert failure["status"] == "interrupted" and failure["reason"] == line[len("error: "):] and failure["step"] == 4
     assert torch.load(last, weights_only=False)["global_step"] == 4  # the step of the signal, not a periodic save
     assert not read_csv_logs(run).empty  # the metrics logged so far are kept
-    at_stop = last_weights(run)
-    src.train.main.__wrapped__(tiny_config(tmp, *SIGNAL_RUN, f"output_dir={run}", f"ckpt_path={last}"))  # as the CLI
+    at_stop, tracked = last_weights(run), _best_tracking(last)
+    assert Path(tracked["best_model_path"]).parent == last.parent
+
+    resumed = subprocess.run([sys.executable, *command[1:]], cwd=CONF.parent, env=_cli_env(), capture_output=True,
+                             text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "dirpath has changed" not in resumed.stderr and "is not empty" not in resumed.stderr, resumed.stderr[-3000:]
     assert_same_weights(last_weights(run), expected, at_stop)
     assert not (run / "failure.json").exists()  # the finished run removed the stale record
     assert sorted(p.name for p in last.parent.glob("last*")) == ["last.ckpt"]  # overwritten, no last-v1.ckpt
+    # one best checkpoint over both sessions, the best validation score of both: the tracking was kept
+    logs = read_csv_logs(run)
+    best = _best_tracking(last)
+    assert best["best_model_score"].item() == pytest.approx(logs["val/score"].min())
+    assert [p.name for p in last.parent.glob("best-*.ckpt")] == [Path(best["best_model_path"]).name]
+    assert len(list((run / "csv").glob("version_*"))) == 2  # both sessions in the same run dir
+
+
+def test_an_interrupted_multirun_resumes_every_job_in_its_folder_with_the_printed_command(uninterrupted):
+    """A sweep of two jobs (only the first paused, at step 3) stopped by SIGTERM; the printed command resumes the
+    sweep in its folder: the interrupted job from its last.ckpt (bit-for-bit), the other in its own folder."""
+    tmp, expected = uninterrupted
+    sweep, ready = tmp / "sweep", tmp / "ready_sweep"
+    pause = ["+callbacks.pause._target_=tests.helpers.registration_helpers.PauseAt", "+callbacks.pause.step=3,100",
+             f"+callbacks.pause.ready={ready}"]
+    command = [sys.executable, "-m", "src.train", "-m", *TINY, f"data.cache_root={tmp / 'cache'}", *SIGNAL_RUN, *pause,
+               f"hydra.sweep.dir={sweep}"]
+    process = subprocess.Popen(command, cwd=CONF.parent, env=_cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)
+    deadline = time.monotonic() + 600
+    while not ready.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    os.killpg(process.pid, signal.SIGTERM)
+    _, stderr = process.communicate(timeout=600)
+    assert process.returncode != 0
+    said = "resume it in its folder with: "
+    line = next(line for line in stderr.splitlines() if said in line)
+    resume = shlex.split(line.split(said, 1)[1])
+    assert resume[:4] == ["python", "-m", "src.train", "-m"] and resume[-2:] == [f"hydra.sweep.dir={sweep}", "ckpt_path=last"]
+    at_stop = last_weights(sweep / "0")
+
+    resumed = subprocess.run([sys.executable, *resume[1:]], cwd=CONF.parent, env=_cli_env(), capture_output=True,
+                             text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "dirpath has changed" not in resumed.stderr and "is not empty" not in resumed.stderr, resumed.stderr[-3000:]
+    assert_same_weights(last_weights(sweep / "0"), expected, at_stop)
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]  # no new job folders
+    for job in ("0", "1"):
+        assert not (sweep / job / "failure.json").exists()
+        assert torch.load(sweep / job / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == RESUME_STEPS
+
+
+def test_ckpt_path_last_resumes_the_run_dirs_own_checkpoint(uninterrupted):
+    """``ckpt_path=last`` (the resume command of a sweep's jobs) takes the run dir's own last.ckpt."""
+    tmp, expected = uninterrupted
+    run = tmp / "last"
+    kill = [f"+callbacks.kill._target_={KillAt.__module__}.KillAt", "+callbacks.kill.step=3"]
+    with pytest.raises(RuntimeError, match="killed at step 3"):
+        train(tiny_config(tmp, *RESUME_RUN, f"trainer.max_steps={RESUME_STEPS}", *kill, f"output_dir={run}"))
+    at_stop = last_weights(run)
+    train(tiny_config(tmp, *RESUME_RUN, f"trainer.max_steps={RESUME_STEPS}", f"output_dir={run}", "ckpt_path=last"))
+    assert_same_weights(last_weights(run), expected, at_stop)
 
 
 def test_resume_with_another_batch_size_is_refused(uninterrupted):

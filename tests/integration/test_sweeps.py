@@ -137,7 +137,8 @@ def test_latex_table_compiles_and_holds_the_collected_numbers(runs, tmp_path):
     assert check_latex(tex) == []
     (spec, body), = tabulars(tex)
     rows = tabular_rows(body)
-    assert rows[0] == ["Method", *[f"{m[:-3]}($\\mathbf{{{m[-2]}}}$)" for m in table.metrics]]
+    degrees = {m: " ($^\\circ$)" if m.endswith("(R)") else "" for m in table.metrics}  # units and direction
+    assert rows[0] == ["Method", *[f"{m[:-3]}($\\mathbf{{{m[-2]}}}$){degrees[m]} $\\downarrow$" for m in table.metrics]]
     blocks = [r[0] for r in rows if r[0].startswith("\\multicolumn")]
     assert len(blocks) == 2 and "Unseen shapes" in blocks[0] and "RPMNet manner" in blocks[1]
     seen = 0

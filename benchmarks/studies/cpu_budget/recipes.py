@@ -14,7 +14,7 @@ Error(R) against CPU hours.
 ``run`` is resumable: a finished recipe (``done.json``) is skipped, an interrupted one resumes from
 its ``last.ckpt`` (written every few minutes). Keep ``--root`` outside the repository. The
 ``airplane+bathtub`` recipe trains on both real categories (the validation carve-out stays the
-airplanes'): prepare the cache from both shared archives first (README, "Real ModelNet40 shapes").
+airplanes'): prepare the cache from both shared archives first (docs/data.md: Real ModelNet40 shapes).
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@ transforms, the runner's per-pair timeout, bad input and bad options; an optiona
 from __future__ import annotations
 
 import importlib.util
+import re
+import tomllib
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from baselines import get_registrator, run_pairs, transform_problem
 from baselines.classical import _optional
 from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
 from src.utils.errors import ConfigError, PointCloudError
+from tests.helpers.paths import ROOT
 
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~14° in total: within a local method's basin
 LARGE = euler_transform((40.0, -35.0, 30.0), (0.3, -0.2, 0.25))  # ~60° in total: for the global method
@@ -25,7 +28,7 @@ LOCAL = ["point_to_plane_icp", "gicp", "small_gicp", "cpd", "filterreg"]
 def _needs(method: str) -> None:
     package = PACKAGES[method]
     if package and importlib.util.find_spec(package.replace("-", "_")) is None:
-        pytest.skip(f"optional package {package} not installed: pip install {package} (or {_optional.EXTRA})")
+        pytest.skip(f"optional package {package} not installed: {_optional.install_hint(package)}")
 
 
 def _errors(estimate, truth) -> tuple[float, float]:
@@ -114,7 +117,12 @@ def test_bad_options_are_one_config_error(method, options, message):
 
 
 @pytest.mark.parametrize("method", ["small_gicp", "cpd", "filterreg"])
-def test_a_missing_optional_package_names_its_install(method, monkeypatch):
+def test_a_missing_optional_package_names_the_extra_that_installs_it(method, monkeypatch):
+    """FilterReg's hint named the classical extra, which does not hold probreg."""
     monkeypatch.setattr(_optional.importlib.util, "find_spec", lambda name: None)
-    with pytest.raises(ConfigError, match=f"needs the optional package {PACKAGES[method]}.*pip install"):
+    with pytest.raises(ConfigError, match="needs the optional package") as info:
         get_registrator(method)
+    extra = re.search(r'pip install -e "\.\[(\w+)\]"', str(info.value)).group(1)
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert f"pip install {PACKAGES[method]} (or" in str(info.value)
+    assert any(requirement.startswith(PACKAGES[method]) for requirement in extras[extra]), (extra, extras[extra])

@@ -180,3 +180,19 @@ def test_the_seed_defines_a_grid_cell_only_for_a_network_that_samples(omnet_ckpt
     assert "seed" not in factory.identity(get_registrator("omnet", checkpoint=str(omnet_ckpt)))["config"]
     assert not _tiny_prnet("model.network.deterministic_eval=true").samples_at_test
     assert factory.identity(get_registrator("fgr"))["config"]["seed"] == 0  # a classical method's seed stays
+
+
+def test_the_shipped_checkpoint_says_once_what_it_was_trained_on(caplog, monkeypatch):
+    """get_registrator("omnet") took the shipped real-airplane model for any clouds without a word."""
+    from baselines.learned import adapter
+
+    monkeypatch.setattr(adapter, "_ANNOUNCED", set())
+    with caplog.at_level("WARNING", logger=adapter.__name__):
+        first = get_registrator("omnet")
+        get_registrator("omnet")
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    card = json.loads(Path(first.config.checkpoint).with_suffix(".json").read_text())
+    experiment = card["experiment"]
+    assert len(said) == 1 and Path(first.config.checkpoint).name in said[0]
+    assert all(str(v) in said[0] for v in (experiment["task"], experiment["dataset"], experiment["sampling"].upper()))
+    assert "checkpoint=PATH" in said[0]

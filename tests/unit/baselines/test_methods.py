@@ -4,6 +4,8 @@ adapters and the published weights derive from."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -63,6 +65,8 @@ def test_every_method_appears_in_the_tables_in_the_papers_order():
     rows = build_table(_tidy(reversed([m.display for m in METHODS])), "table1", metrics=["Error(R)"]).blocks[0].rows
     labels = [row.label for row in rows]
     assert sorted(labels) == sorted(m.display for m in METHODS)
+    assert labels[0] == get_method("identity").display and rows[0].reference  # the reference first, never ranked
+    labels = labels[1:]
     ranked = [get_method(label) for label in labels]
     positions = [m.table1 for m in ranked if m.table1 is not None]
     assert positions == sorted(positions) and ranked[-1].ours and sum(m.ours for m in METHODS) == 1
@@ -119,3 +123,15 @@ def test_published_weights_name_their_method():
         assert network == get_method(entry.method).network
     with pytest.raises(ConfigError, match="published weights x: icp is not the key of a learned method"):
         Published(name="x", file="x", sha256="0", layout="dcp", source="", license="", trained_on="", method="icp")
+
+
+@pytest.mark.shared_data("reference/omnet-paper.tex")
+def test_the_registry_cites_omnet_by_the_papers_authors():
+    """It cited "Xu, Liu, Ye, Zhang, Zeng & Liu"."""
+    tex = shared_path("reference", "omnet-paper.tex").read_text()
+    block = re.search(r"\\author\{(.*?)\\\\\s*\\\\", tex, re.S).group(1)
+    block = re.sub(r"\\thanks\{[^}]*\}|\$[^$]*\$|\\hspace\{[^}]*\}", "", block)
+    authors = [name.strip() for name in block.splitlines() if name.strip()]
+    assert len(authors) == 5
+    cited = get_method("omnet").paper.split(", OMNet:")[0]
+    assert cited == ", ".join(authors[:-1]) + f" & {authors[-1]}"

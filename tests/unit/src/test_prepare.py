@@ -367,3 +367,13 @@ def test_training_refuses_a_cache_whose_splits_share_a_shape_id(tmp_path):
     with pytest.raises(ConfigError, match=r"^1 shapes of the test set are also training shapes \(cache splits 'train' "
                                           r"and 'test' list the same shape ids\) \(first: airplane_0002\)"):
         datamodule.setup("fit")
+
+
+def test_an_up_to_date_cache_is_said_once_per_process(princeton_dir, tmp_path, info_logs):
+    """A grid of 12 cells printed the same "cache up to date" line 12 times."""
+    args = {"source": princeton_dir, "cache_root": tmp_path, "num_samplings": 2, "num_points": 16}
+    prepare("modelnet40", **args)
+    info_logs.clear()
+    for _ in range(3):
+        prepare("modelnet40", **args)
+    assert info_logs.text.count("cache up to date") == 1
