@@ -22,7 +22,7 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from src.checkpoint_io import check_checkpoint, read_checkpoint_network
+from src.checkpoint_io import check_checkpoint, read_checkpoint, read_checkpoint_network
 from src.config import register_resolvers
 from src.errors import CheckpointError, ConfigError
 from src.failures import job_main
@@ -33,6 +33,7 @@ from src.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.reporting import report_test_metrics, save_resolved_config
 from src.evaluated import evaluated_record
 from src.trainer import build_trainer
+from src.trained_on import refuse_test_overlap
 
 register_resolvers()
 log = logging.getLogger(__name__)
@@ -81,10 +82,13 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     module, ckpt_path = load_module(cfg)
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
+    datamodule.setup("test")
+    overlap = {"test_overlap_checked": False} if cfg.get("weights") else refuse_test_overlap(
+        read_checkpoint(ckpt_path), ckpt_path, datamodule)
     trainer = build_trainer(cfg, with_checkpoints=False)
     trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer))
+    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer), **overlap)
     return metrics
 
 

@@ -23,7 +23,7 @@ from omegaconf import DictConfig
 from src.distributed import distributed_job_scope, global_rank
 from src.cli import hydra_command
 from src.errors import ConfigError, Interrupted, UserError, user_error_behind
-from src.files import write_text_atomic
+from src.files import disk_errors, write_text_atomic
 from src.paths import REPO_ROOT
 from src.signals import interruptible
 from src.validation import validate_config
@@ -92,7 +92,8 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         hc = HydraConfig.get()
         record["overrides"] = list(hc.overrides.task)
         record["job"] = {"name": hc.job.name, "num": hc.job.get("num"), "id": hc.job.get("id")}
-    output_dir.mkdir(parents=True, exist_ok=True)
+    with disk_errors("writing failure.json", output_dir):
+        output_dir.mkdir(parents=True, exist_ok=True)
     path = output_dir / _failure_name(rank)
     write_text_atomic(path, json.dumps(record, indent=2))
     return path

@@ -12,7 +12,8 @@ line (the key and why), instead of being written into ``config_resolved.yaml`` a
   (``trainer.limit_val_batches=0`` turns it off) and a checkpoint kept (``save_top_k=0`` keeps none): else
   the test would run on the last weights, not the selected ones (:func:`refuse_unused_in_train`).
 * Both: a data override that the run's pair pipeline does not read (:data:`READ_ONLY_WITH`, e.g.
-  ``data.pair.rpmnet_p_keep`` in the PRNet manner) is refused (:func:`refuse_unread_overrides`).
+  ``data.pair.rpmnet_p_keep`` in the PRNet manner, OMNet's ``model.network.topk`` under argmax masks) is
+  refused (:func:`refuse_unread_overrides`).
 """
 
 from __future__ import annotations
@@ -115,6 +116,7 @@ READ_ONLY_WITH: dict[str, ReadOnlyWith] = {
     "data.pair.unit_cube": _TWIST,
     "data.pair.noise_clip": ReadOnlyWith("data.pair.noise_sigma", (0,), unless=True),
     "sampling": ReadOnlyWith("data.dataset", ("scan_pairs",), unless=True),  # two real scans: no sampling
+    "model.network.topk": ReadOnlyWith("model.network.mask_mode", ("topk",)),  # (OMNet: argmax masks take no k)
 }
 
 

@@ -44,6 +44,7 @@ from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
 from src.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
+from src.models.pretrained import verify_card
 from src.paths import SHIPPED_DIR
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "run_batches"]
@@ -107,7 +108,8 @@ def shipped_checkpoint(method: str, target: str, directory: Path | None = None) 
             f"method '{method}' needs a checkpoint and none is shipped for it in {directory}: pass checkpoint=PATH "
             f"(a .ckpt written by `python -m src.train model={method}`) or weights=official:<name>"
         )
-    return min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
+    chosen = min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
+    return verify_card(chosen, cards[chosen])
 
 
 def _used_as(target: str) -> str:
