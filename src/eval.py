@@ -22,6 +22,7 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
+from src.batch_limits import refuse_empty_limits
 from src.checkpoint_io import check_checkpoint, read_checkpoint, read_checkpoint_network
 from src.config import register_resolvers
 from src.errors import CheckpointError, ConfigError
@@ -83,6 +84,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.setup("test")
+    refuse_empty_limits(cfg, datamodule, ("test",))
     overlap = {"test_overlap_checked": False} if cfg.get("weights") else refuse_test_overlap(
         read_checkpoint(ckpt_path), ckpt_path, datamodule)
     trainer = build_trainer(cfg, with_checkpoints=False)

@@ -27,12 +27,14 @@ import lightning as L
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
+from src.batch_limits import refuse_empty_limits
 from src.checkpoint_io import check_checkpoint, read_checkpoint
 from src.config import register_resolvers
 from src.errors import ConfigError
 from src.failures import job_main
-from src.recorded import refuse_unread_overrides, refuse_unused_in_train
+from src.recorded import refuse_resume_past_budget, refuse_unread_overrides, refuse_unused_in_train
 from src.reporting import report_test_metrics, save_resolved_config
+from src.run_dir import refuse_reused_run_dir
 from src.run_info import require_prepared_paper_data
 from src.evaluated import evaluated_record
 from src.trainer import build_trainer
@@ -91,8 +93,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     refuse_unused_in_train(cfg)
     refuse_unread_overrides(cfg)
     require_prepared_paper_data(cfg)
+    refuse_reused_run_dir(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
+        refuse_resume_past_budget(cfg, read_checkpoint(cfg.ckpt_path))
     if cfg.init_weights:
         check_checkpoint(cfg.init_weights, cfg.model.network._target_, model=cfg.model)
     save_resolved_config(cfg)
@@ -103,6 +107,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
         module.load_state_dict(read_checkpoint(cfg.init_weights)["state_dict"])
     trainer = build_trainer(cfg)
     require_one_batch(datamodule, trainer)
+    if cfg.test_after_fit:
+        datamodule.setup("test")
+    refuse_empty_limits(cfg, datamodule, ("train", "val", "test"))
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     fit_seconds = time.perf_counter() - start

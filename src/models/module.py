@@ -18,7 +18,7 @@ from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLR
 from torchmetrics import MeanMetric
 
 from src.errors import ConfigError, DivergenceError
-from src.metrics import SCORE, RegistrationMetrics
+from src.metrics import METRIC_NAMES, SCORE, RegistrationMetrics
 from src.models.base import check_network
 
 #: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
@@ -152,6 +152,9 @@ class RegistrationModule(L.LightningModule):
     ``conf/recipe/<model>.yaml`` (docs/recipes.md). ``lr_milestones``/``lr_gamma`` (step milestones)
     are what checkpoints and model configs written before the recipes hold.
     """
+
+    #: What each validation logs, that a checkpoint can be selected on (``callbacks.checkpoint.monitor``).
+    VALIDATION_METRICS: tuple[str, ...] = ("val/loss", *(f"val/{name}" for name in METRIC_NAMES), "val_score")
 
     def __init__(
         self,
