@@ -12,8 +12,9 @@ from omegaconf import DictConfig
 
 from src.errors import ConfigError
 
-#: What a training run leaves in its folder (``config_resolved.yaml`` first, before training).
-RUN_MARKERS = ("config_resolved.yaml", "metrics.json", "checkpoints")
+#: What a run that trained leaves in its folder (a run refused before training leaves none of them: it may be
+#: rerun there): its logs (from the first step), checkpoints and test metrics.
+RUN_MARKERS = ("csv", "checkpoints", "metrics.json")
 
 
 def refuse_reused_run_dir(cfg: DictConfig) -> None:

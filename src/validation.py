@@ -329,6 +329,10 @@ def _object_nodes(node: Any, path: str = "") -> Iterator[tuple[str, DictConfig]]
             yield from _object_nodes(child, f"{path}.{key}" if path else str(key))
 
 
+#: The keys Hydra's instantiation reads itself (any other key, ``_foo`` included, goes to the constructor).
+_HYDRA_KEYS = ("_target_", "_recursive_", "_convert_", "_partial_", "_args_")
+
+
 def _check_options(path: str, node: DictConfig) -> None:
     """ConfigError for a key of ``node`` that its ``_target_`` does not take (e.g. ``+trainer.max_step=5``,
     or ``+data.foo=1``, which would fail deep inside the constructor or be silently dropped)."""
@@ -340,7 +344,7 @@ def _check_options(path: str, node: DictConfig) -> None:
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
         return
     takes = [p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL]
-    unknown = [str(k) for k in node.keys() if not str(k).startswith("_") and str(k) not in takes]
+    unknown = [str(k) for k in node.keys() if str(k) not in _HYDRA_KEYS and str(k) not in takes]
     if unknown:
         key = unknown[0]
         close = difflib.get_close_matches(key, takes, n=3)

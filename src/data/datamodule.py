@@ -131,6 +131,9 @@ class RegistrationDataModule(L.LightningDataModule):
         normals: str = "none",
     ) -> None:
         super().__init__()
+        for key, value in (("splits", splits), ("pair", pair), ("build", build)):
+            if value is not None and not isinstance(value, Mapping):
+                raise ConfigError(f"data.{key}={value!r} is invalid: it must be a mapping of settings (data.{key}.<key>=...)")
         if normals not in NORMALS:
             raise ConfigError(f"data.normals must be one of {NORMALS}, got {normals!r}")
         self.dataset, self.normals = dataset, normals

@@ -101,7 +101,7 @@ def test_resuming_a_run_past_its_budget_is_refused(trained, tmp_path):
 def test_a_second_training_in_a_run_folder_is_refused_and_its_own_resume_is_not(trained, tmp_path):
     run, _ = trained
     before = sorted(p.name for p in run.rglob("*"))
-    with pytest.raises(ConfigError, match=r"already holds a run \(config_resolved.yaml, metrics.json, checkpoints\): "
+    with pytest.raises(ConfigError, match=r"already holds a run \(csv, checkpoints, metrics.json\): "
                                           r"a second training there would mix"):
         train(_config(trained, run, "trainer.max_steps=1"))
     assert sorted(p.name for p in run.rglob("*")) == before
