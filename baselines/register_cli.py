@@ -33,15 +33,16 @@ from typing import Any
 import numpy as np
 import yaml
 
+from baselines.cloud_panels import REFERENCE, SOURCE, centre, half_size, panel
 from baselines.conditioning import WORKING_RADIUS, Similarity, pair_radius
 from baselines.methods import display_name
 from baselines.registry import get_registrator
-from baselines.result import FIT_THRESHOLD, inlier_fit
-from baselines.cloud_panels import REFERENCE, SOURCE, centre, half_size, panel
+from baselines.result import FIT_THRESHOLD, check_threshold, inlier_fit
 from src.data.point_files import read_points, write_ply
 from src.data.scans import shared_similarity
-from src.utils.errors import ConfigError, UserError
 from src.geometry.numpy_rigid import apply_transform
+from src.utils.errors import ConfigError, UserError
+from src.utils.files import disk_errors
 
 #: Points per cloud a learned method registers (the shipped models' training clouds: PRNet-manner crops of 768).
 LEARNED_POINTS = 768
@@ -141,8 +142,8 @@ def write_outputs(record: dict[str, Any], out: Path) -> list[Path]:
     return files
 
 
-def summary(record: dict[str, Any], files: Sequence[Path]) -> str:
-    """What the command prints: the method, the transform, its size, the fit and the files."""
+def summary(record: dict[str, Any]) -> str:
+    """What the command prints first: the method, the transform, its size and the fit."""
     rows = "\n".join("  " + " ".join(f"{v:12.6f}" for v in row) for row in record["transform"])
     normalised = ("" if record["normalisation"] is None else
                   f" (registered in the unit sphere: scale {record['normalisation']['scale']:.4g}, mapped back)")
@@ -152,7 +153,7 @@ def summary(record: dict[str, Any], files: Sequence[Path]) -> str:
             f"transform (reference ≈ T · source):\n{rows}\n"
             f"rotation {record['rotation_deg']:.2f}°, translation {record['translation']:.4g}; fitness "
             f"{record['fitness']:.3f}, inlier RMSE {record['inlier_rmse']:.4g} (inliers within {record['threshold']:.4g}); "
-            f"{record['seconds']:.2f} s\nwrote " + ", ".join(map(str, files)))
+            f"{record['seconds']:.2f} s")
 
 
 def add_parser(sub: Any) -> None:
@@ -176,7 +177,11 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> None:
     if args.points < 3:
         raise ConfigError(f"--points must be >= 3, got {args.points}")
+    check_threshold(args.threshold)
     options = _options(args.option) | {k: v for k, v in (("checkpoint", args.checkpoint), ("weights", args.weights)) if v}
     record = register_files(args.source, args.reference, args.method, options, args.points, args.threshold)
     out = args.out or Path("outputs") / "register" / f"{args.source.stem}_to_{args.reference.stem}"
-    print(summary(record, write_outputs(record, out)))
+    print(summary(record), flush=True)  # before writing: a folder that cannot be written loses no computed result
+    with disk_errors("writing the registration's files", out):
+        files = write_outputs(record, out)
+    print("wrote " + ", ".join(map(str, files)))

@@ -67,17 +67,20 @@ def one_line(exc: BaseException) -> str:
 
 
 def check_threshold(threshold: float | None) -> None:
-    """ConfigError unless ``threshold`` is None or a positive number."""
-    if threshold is not None and not (isinstance(threshold, (int, float)) and threshold > 0):
+    """ConfigError unless ``threshold`` is None or a positive finite number."""
+    if threshold is not None and not (isinstance(threshold, (int, float)) and not isinstance(threshold, bool)
+                                      and math.isfinite(threshold) and threshold > 0):
         raise ConfigError(f"threshold must be a distance > 0 (or None: no fit), got {threshold!r}")
 
 
 def inlier_fit(src: np.ndarray, ref: np.ndarray, transform: np.ndarray, threshold: float) -> tuple[float, float]:
     """``(fitness, inlier_rmse)`` of ``src`` moved by ``transform`` against ``ref``, as Open3D's
     ``evaluate_registration``: the share of moved source points whose nearest reference point lies
-    within ``threshold``, and the root mean square of those distances (0 when there is none)."""
+    within ``threshold``, and the root mean square of those distances (0 when there is none); ConfigError for a
+    threshold that is no positive distance (a negative one would count every point an inlier)."""
     from scipy.spatial import cKDTree
 
+    check_threshold(threshold)
     distances, _ = cKDTree(ref).query(apply_transform(transform, src), distance_upper_bound=threshold)
     inliers = distances[np.isfinite(distances)]
     rmse = math.sqrt(float(np.mean(inliers**2))) if len(inliers) else 0.0

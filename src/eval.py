@@ -22,17 +22,23 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from src.run.checkpoint_io import check_checkpoint, read_checkpoint_network
 from src.config import register_resolvers
-from src.utils.errors import CheckpointError, ConfigError
-from src.run.failures import job_main
 from src.models.module import RegistrationModule
 from src.models.pretrained import find_shipped
-from src.utils.paths import CONF_DIR
+from src.run.batch_limits import refuse_empty_limits
+from src.run.checkpoint_io import (
+    check_checkpoint,
+    read_checkpoint,
+    read_checkpoint_network,
+)
+from src.run.evaluated import evaluated_record
+from src.run.failures import job_main
 from src.run.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.run.reporting import report_test_metrics, save_resolved_config
-from src.run.evaluated import evaluated_record
+from src.run.trained_on import refuse_test_overlap
 from src.run.trainer import build_trainer
+from src.utils.errors import CheckpointError, ConfigError
+from src.utils.paths import CONF_DIR
 
 register_resolvers()
 log = logging.getLogger(__name__)
@@ -81,10 +87,14 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     module, ckpt_path = load_module(cfg)
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
+    datamodule.setup("test")
+    refuse_empty_limits(cfg, datamodule, ("test",))
+    overlap = {"test_overlap_checked": False} if cfg.get("weights") else refuse_test_overlap(
+        read_checkpoint(ckpt_path), ckpt_path, datamodule)
     trainer = build_trainer(cfg, with_checkpoints=False)
     trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer))
+    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer), **overlap)
     return metrics
 
 

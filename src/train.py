@@ -30,13 +30,19 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig
 
 from src.config import register_resolvers
+from src.run.batch_limits import refuse_empty_limits
 from src.run.checkpoint_io import check_checkpoint, read_checkpoint
 from src.run.evaluated import evaluated_record
 from src.run.failures import job_main
 from src.run.info import require_prepared_paper_data
-from src.run.recorded import refuse_unread_overrides, refuse_unused_in_train
+from src.run.recorded import (
+    refuse_resume_past_budget,
+    refuse_unread_overrides,
+    refuse_unused_in_train,
+)
 from src.run.reporting import report_test_metrics, save_resolved_config
 from src.run.resume import finished_record, resolve_ckpt_path, resuming_in_place
+from src.run.run_dir import refuse_reused_run_dir
 from src.run.trainer import build_trainer
 from src.utils.errors import ConfigError
 
@@ -100,8 +106,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
         log.info("ckpt_path=last: %s records a finished run (trained and tested); nothing to resume", finished)
         return {}
     cfg.ckpt_path = resolve_ckpt_path(cfg)
+    refuse_reused_run_dir(cfg)
     if cfg.ckpt_path:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
+        refuse_resume_past_budget(cfg, read_checkpoint(cfg.ckpt_path))
     if cfg.init_weights:
         check_checkpoint(cfg.init_weights, cfg.model.network._target_, model=cfg.model)
     save_resolved_config(cfg)
@@ -112,6 +120,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
         module.load_state_dict(read_checkpoint(cfg.init_weights)["state_dict"])
     trainer = build_trainer(cfg)
     require_one_batch(datamodule, trainer)
+    if cfg.test_after_fit:
+        datamodule.setup("test")
+    refuse_empty_limits(cfg, datamodule, ("train", "val", "test"))
     start = time.perf_counter()
     with resuming_in_place(cfg.ckpt_path, cfg.output_dir):
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)

@@ -21,7 +21,7 @@ import difflib
 import functools
 import inspect
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -61,10 +61,11 @@ class Rule:
             text = "true or false"
         else:
             text = "an integer" if self.kind is int else "a number"
+            show = (lambda x: str(int(x))) if self.kind is int else (lambda x: f"{x:g}")
             if self.low is not None and self.high is not None:
-                text += f" in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}"
+                text += f" in {'(' if self.low_open else '['}{show(self.low)}, {show(self.high)}{')' if self.high_open else ']'}"
             elif self.low is not None:
-                text += f" {'>' if self.low_open else '>='} {self.low:g}"
+                text += f" {'>' if self.low_open else '>='} {show(self.low)}"
         if self.each:
             text = f"a list of {text.replace('an integer', 'integers').replace('a number', 'numbers')}"
         if self.sentinel is not None:
@@ -104,6 +105,7 @@ def number(low: float | None = None, high: float | None = None, low_open: bool =
 
 
 POSITIVE = number(0.0, low_open=True)
+SEED = Rule(int, 0, 2**32 - 1)  # what NumPy and Lightning accept
 NON_NEGATIVE = number(0.0)
 FRACTION = number(0.0, 1.0, low_open=True)  # (0, 1]
 FLAG = Rule(bool)
@@ -122,7 +124,7 @@ _NETWORK_FLAGS = ("share_weights", "mask_module", "mask_loss", "fusion", "connec
 RULES: dict[str, Rule] = {
     "sampling": Rule(str, choices=SAMPLINGS),
     "partial": Rule(str, choices=PARTIAL_MANNERS),
-    "seed": integer(),
+    "seed": SEED,
     "model_scale": POSITIVE,
     "test_after_fit": FLAG,
     # data (conf/data/base.yaml)
@@ -148,12 +150,12 @@ RULES: dict[str, Rule] = {
     "data.num_workers": integer(0),
     "data.pin_memory": FLAG,
     "data.persistent_workers": FLAG,
-    "data.seed": integer(),
+    "data.seed": SEED,
     "data.build.num_train_per_category": integer(1),
     "data.build.num_test_per_category": integer(1),
     "data.build.num_samplings": integer(1),
     "data.build.num_points": integer(MIN_POINTS),
-    "data.build.seed": integer(),
+    "data.build.seed": SEED,
     "data.build.normals": FLAG,
     # trainer and callbacks (conf/trainer/*.yaml, conf/callbacks/default.yaml): zero or negative budgets and
     # intervals train nothing, never validate or checkpoint, or fail deep inside Lightning
@@ -172,6 +174,7 @@ RULES: dict[str, Rule] = {
     "callbacks.periodic_checkpoint.every_n_train_steps": integer(1, nullable=True),
     "callbacks.checkpoint.every_n_train_steps": integer(1, nullable=True),
     "callbacks.checkpoint.save_top_k": integer(-1),
+    "callbacks.checkpoint.mode": Rule(str, choices=("min", "max")),
     # model (conf/model/*.yaml, conf/recipe/*.yaml): the RegistrationModule, then network fields by name
     "model.lr": POSITIVE,
     "model.weight_decay": NON_NEGATIVE,
@@ -219,15 +222,43 @@ def validate_config(cfg: DictConfig) -> None:
     then for the first value that breaks its rule in :data:`RULES`, then for the first key of an
     object's node (``_target_``) that its class or function does not take."""
     check_top_level_keys(cfg, "config")
-    for key, rule in RULES.items():
+    _check_rules(cfg, RULES)
+    for path, node in _object_nodes(cfg):
+        _check_options(path, node)
+    _check_precision(cfg)
+
+
+def _check_rules(cfg: DictConfig, rules: Mapping[str, Rule]) -> None:
+    """ConfigError for the first value of ``cfg`` that breaks its rule in ``rules``."""
+    for key, rule in rules.items():
         value = _value(cfg, key)
         if value is _ABSENT or (isinstance(value, dict) and "_target_" in value):
             continue
         if not rule.accepts(value):
             raise ConfigError(f"{key}={_show(value)} is invalid: it must be {rule.describe()}")
-    for path, node in _object_nodes(cfg):
-        _check_options(path, node)
-    _check_precision(cfg)
+
+
+#: The grid's own keys (``conf/benchmark/*.yaml``).
+GRID_RULES: dict[str, Rule] = {
+    "workers": integer(0, nullable=True),
+    "timeout_s": number(0.0, low_open=True, nullable=True),
+    "pairs_per_call": integer(1),
+    "benchmark.max_pairs": integer(1, nullable=True),
+    "progress": FLAG,
+    "paper": FLAG,
+}
+
+
+def validate_grid_config(cfg: DictConfig) -> None:
+    """ConfigError for a top-level key no grid config has, a value of the grid's own keys that breaks its rule in
+    :data:`GRID_RULES`, or a per-method pair limit (``benchmark.max_pairs_by_method``) that is no count >= 1."""
+    check_top_level_keys(cfg, "benchmark_grid")
+    _check_rules(cfg, GRID_RULES)
+    limits = _value(cfg, "benchmark.max_pairs_by_method")
+    for method, limit in (limits.items() if isinstance(limits, dict) else ()):
+        if not integer(1).accepts(limit):
+            raise ConfigError(f"benchmark.max_pairs_by_method.{method}={_show(limit)} is invalid: it must be "
+                              f"{integer(1).describe()}")
 
 
 #: The config groups of each application's primary config that are not its top-level keys themselves.
@@ -299,6 +330,10 @@ def _object_nodes(node: Any, path: str = "") -> Iterator[tuple[str, DictConfig]]
             yield from _object_nodes(child, f"{path}.{key}" if path else str(key))
 
 
+#: The keys Hydra's instantiation reads itself (any other key, ``_foo`` included, goes to the constructor).
+_HYDRA_KEYS = ("_target_", "_recursive_", "_convert_", "_partial_", "_args_")
+
+
 def _check_options(path: str, node: DictConfig) -> None:
     """ConfigError for a key of ``node`` that its ``_target_`` does not take (e.g. ``+trainer.max_step=5``,
     or ``+data.foo=1``, which would fail deep inside the constructor or be silently dropped)."""
@@ -310,7 +345,7 @@ def _check_options(path: str, node: DictConfig) -> None:
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
         return
     takes = [p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL]
-    unknown = [str(k) for k in node.keys() if not str(k).startswith("_") and str(k) not in takes]
+    unknown = [str(k) for k in node.keys() if str(k) not in _HYDRA_KEYS and str(k) not in takes]
     if unknown:
         key = unknown[0]
         close = difflib.get_close_matches(key, takes, n=3)

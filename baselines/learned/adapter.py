@@ -42,8 +42,9 @@ from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
-from src.utils.errors import CheckpointError, ConfigError
 from src.geometry.clouds import check_cloud
+from src.models.pretrained import verify_card
+from src.utils.errors import CheckpointError, ConfigError
 from src.utils.paths import SHIPPED_DIR
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "run_batches"]
@@ -107,7 +108,8 @@ def shipped_checkpoint(method: str, target: str, directory: Path | None = None) 
             f"method '{method}' needs a checkpoint and none is shipped for it in {directory}: pass checkpoint=PATH "
             f"(a .ckpt written by `python -m src.train model={method}`) or weights=official:<name>"
         )
-    return min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
+    chosen = min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
+    return verify_card(chosen, cards[chosen])
 
 
 def trained_on(card: dict[str, Any]) -> str:
@@ -176,7 +178,9 @@ class LearnedRegistrator(Registrator):
             shipped = shipped_checkpoint(self.name, self.network_target)
             cfg.checkpoint, self.shipped = str(shipped), shipped.stem
             say_trained_on(self.name, shipped)
-        from src.run.checkpoint_io import read_checkpoint_network  # here: keeps `import baselines` light
+        from src.run.checkpoint_io import (
+            read_checkpoint_network,  # here: keeps `import baselines` light
+        )
 
         found = read_checkpoint_network(cfg.checkpoint)
         if found != self.network_target:
@@ -189,7 +193,10 @@ class LearnedRegistrator(Registrator):
 
     def _check_weights(self, spec: str) -> None:
         """Published weights must exist, be intact and fit this method's network (CheckpointError)."""
-        from baselines.learned.published import network_config, resolve  # torch: kept out of `import baselines`
+        from baselines.learned.published import (  # torch: kept out of `import baselines`
+            network_config,
+            resolve,
+        )
 
         target = network_config(resolve(spec).entry)["_target_"]
         if target != self.network_target:
@@ -239,7 +246,9 @@ class LearnedRegistrator(Registrator):
         if self.config.fresh_weights:
             module = self._build_fresh()
         elif self.config.weights:
-            from baselines.learned.published import published_module  # torch: kept out of `import baselines`
+            from baselines.learned.published import (
+                published_module,  # torch: kept out of `import baselines`
+            )
 
             module = published_module(self.config.weights, expected_target=self.network_target)
         else:

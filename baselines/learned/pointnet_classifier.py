@@ -57,6 +57,9 @@ class PointNetClassifier(nn.Module):
 class ClassificationModule(L.LightningModule):
     """Trains :class:`PointNetClassifier` (any ``network`` config) with ``src.train``; see the module docstring."""
 
+    #: What each validation logs, that a checkpoint can be selected on (``callbacks.checkpoint.monitor``).
+    VALIDATION_METRICS: tuple[str, ...] = ("val/accuracy", "val/loss")
+
     def __init__(self, network: Mapping[str, Any], lr: float = 1e-3, weight_decay: float = 0.0) -> None:
         super().__init__()
         network = OmegaConf.to_container(network, resolve=True) if isinstance(network, DictConfig) else dict(network)

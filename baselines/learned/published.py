@@ -28,6 +28,7 @@ from torch import Tensor, nn
 
 from baselines.learned.weight_converters import convert, detect_layout, read_state_dict
 from baselines.methods import learned_methods
+from src.run.checkpoint_io import check_finite_weights
 from src.compose import compose_model_config
 from src.data.cache import file_sha256
 from src.utils.errors import CheckpointError, ConfigError
@@ -124,6 +125,7 @@ def resolve(spec: str) -> Resolved:
     if registered is not None:
         _check_sha256(spec, path, registered)
     state = read_state_dict(path)
+    check_finite_weights(state, path)
     layout = registered.layout if registered is not None else detect_layout(state, path)
     entry = registered or next(p for p in PUBLISHED.values() if p.layout == layout)
     return Resolved(entry, path, convert(state, layout), verified=registered is not None)

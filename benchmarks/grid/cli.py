@@ -22,9 +22,9 @@ from src.utils.paths import CONF_DIR
 
 
 def _run(cfg: DictConfig) -> None:
-    from src.validation import check_top_level_keys  # (torch: imported where used, see benchmarks.grid.plan)
+    from src.validation import validate_grid_config  # (torch: imported where used, see benchmarks.grid.plan)
 
-    check_top_level_keys(cfg, GRID_CONFIG)  # a typo'd or unknown top-level key: nothing would read it
+    validate_grid_config(cfg)  # an unknown top-level key (nothing would read it), the grid's own values
     result = run_grid(cfg)
     report(result, cfg)
     log_grid(cfg, result.tidy)  # wandb.enabled=true: the tidy table as a wandb.Table (src/run/wandb_logging.py)

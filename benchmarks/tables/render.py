@@ -60,6 +60,7 @@ ABLATION_ORDER = ("B", "B+M", "B+M+ML", "B+M+ML+F", "B+M+ML+F+C")
 MISSING = "--"
 #: The method every table shows as a reference row, never ranked.
 REFERENCE = "identity"
+NOT_A_NUMBER = "NaN"  # a method that ran and gave NaN: never shown as MISSING (not run), and its column is not ranked
 
 
 # --- the intermediate table ---------------------------------------------------------------------
@@ -131,8 +132,10 @@ def decimals(metric: str) -> int:
 
 
 def fmt(value: float | None, metric: str) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
+    if value is None:
         return MISSING
+    if math.isnan(value):
+        return NOT_A_NUMBER
     return f"{value:.{decimals(metric)}f}"
 
 
@@ -174,7 +177,7 @@ def normalise(frame: pd.DataFrame) -> pd.DataFrame:
         sources = out.groupby("method")["source"].nunique()
         several = set(sources[sources > 1].index)
         out["method"] = [f"{m} ({s})" if m in several else m for m, s in zip(out["method"], out["source"])]
-    return out.dropna(subset=["value"])
+    return out
 
 
 def aggregate(frame: pd.DataFrame) -> pd.DataFrame:
@@ -183,7 +186,7 @@ def aggregate(frame: pd.DataFrame) -> pd.DataFrame:
     keys = ["method", "experiment", "sampling", "partial", "metric"]
     extra = [c for c in ("dataset", "noise_sigma", "overlap_ratio", "num_iters") if c in frame.columns]
     grouped = frame.groupby(keys, dropna=False, sort=False)
-    out = grouped["value"].agg(["mean", "count"]).rename(columns={"mean": "value", "count": "n"}).reset_index()
+    out = grouped["value"].agg(value=lambda v: v.mean(skipna=False), n="size").reset_index()  # a NaN run stays NaN
     for col in extra:
         firsts = grouped[col].agg(lambda v: v.iloc[0] if v.nunique(dropna=False) <= 1 else "<mixed>")
         out[col] = firsts.to_numpy()
@@ -217,7 +220,7 @@ def _rank(rows: list[Row], n_columns: int, metrics: list[str]) -> None:
     for c in range(n_columns):
         metric = metrics[c]
         shown = {round(r.values[c], decimals(metric)) for r in ours if r.values[c] is not None and not math.isnan(r.values[c])}
-        if len(shown) < 2:
+        if len(shown) < 2 or any(r.values[c] is not None and math.isnan(r.values[c]) for r in ours):
             continue
         distinct = sorted(shown, reverse=metric in HIGHER_IS_BETTER)  # ties as printed share a rank
         for r in ours:
@@ -275,7 +278,8 @@ def build_table(
             rows: list[Row] = []
             for method in methods:
                 sub = part[part["method"] == method].set_index(["metric", "sampling"])
-                get = lambda col, key: (float(sub.loc[key, col]) if key in sub.index and pd.notna(sub.loc[key, col]) else None)  # noqa: E731
+                get = lambda col, key: (float(sub.loc[key, col]) if key in sub.index and (col == "value" or pd.notna(sub.loc[key, col]))
+                                        else None)  # noqa: E731 - a value that ran is kept, NaN included
                 group = table3_group(method)[0] if layout == "table3" else 0
                 ours = Row(method, [get("value", k) for k in columns], "ours", group=group,
                            counts=[int(sub.loc[k, "n"]) if k in sub.index else 0 for k in columns],

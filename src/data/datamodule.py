@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 import functools
+import inspect
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -93,6 +95,17 @@ def check_pair_layout(pair: Mapping[str, Any], pair_sampling: str, cloud_points:
     )
 
 
+def check_pair_keys(pair: Mapping[str, Any]) -> None:
+    """ConfigError for a ``data.pair`` key (nested ones included) that the pair pipeline
+    (:func:`~src.data.pipelines.build_pair_transforms`) does not take, with the close matches."""
+    takes = [name for name in inspect.signature(build_pair_transforms).parameters if name != "pair_sampling"]
+    unknown = sorted(set(pair) - set(takes))
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], takes, n=3)
+        hint = f"did you mean {', '.join(f'data.pair.{k}' for k in close)}?" if close else f"it takes {', '.join(takes)}"
+        raise ConfigError(f"data.pair.{unknown[0]} is not a pair setting (nothing reads it): {hint}")
+
+
 class RegistrationDataModule(L.LightningDataModule):
     """Train/val/test pair loaders for one experiment.
 
@@ -118,6 +131,9 @@ class RegistrationDataModule(L.LightningDataModule):
         normals: str = "none",
     ) -> None:
         super().__init__()
+        for key, value in (("splits", splits), ("pair", pair), ("build", build)):
+            if value is not None and not isinstance(value, Mapping):
+                raise ConfigError(f"data.{key}={value!r} is invalid: it must be a mapping of settings (data.{key}.<key>=...)")
         if normals not in NORMALS:
             raise ConfigError(f"data.normals must be one of {NORMALS}, got {normals!r}")
         self.dataset, self.normals = dataset, normals
@@ -128,6 +144,7 @@ class RegistrationDataModule(L.LightningDataModule):
             raise ConfigError(f"data.splits has unknown stages {sorted(unknown)}; expected {STAGES}")
         self.remove_axisymmetric = remove_axisymmetric
         self.pair = dict(pair or {})
+        check_pair_keys(self.pair)
         self.batch_size, self.eval_batch_size = batch_size, eval_batch_size
         self.num_workers = num_workers
         self.pin_memory = pin_memory and torch.cuda.is_available()

@@ -63,7 +63,7 @@ def parse_pcd(data: bytes, name: str) -> np.ndarray:
 def parse_xyz(data: bytes, name: str) -> np.ndarray:
     """The first three numbers of every numeric line of a text file."""
     rows = []
-    for line in data.decode("utf-8", errors="replace").splitlines():
+    for line in data.decode("utf-8-sig", errors="replace").splitlines():
         tokens = [t for t in re.split(r"[\s,;]+", line.strip()) if t]
         if not tokens or tokens[0].startswith("#"):
             continue

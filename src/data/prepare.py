@@ -41,15 +41,31 @@ from typing import NamedTuple
 import numpy as np
 from tqdm import tqdm
 
-from src.data.cache import Cache, CacheWriter, check_cache, default_cache_root, file_sha256, open_cache, prepare_hint
+from src.data.cache import (
+    Cache,
+    CacheWriter,
+    check_cache,
+    default_cache_root,
+    file_sha256,
+    open_cache,
+    prepare_hint,
+)
 from src.data.categories import half_categories
 from src.data.datasets import DATASET_NAMES, DATASETS, get_dataset, source_of
 from src.data.mesh import MeshShape
 from src.data.mirrors import download_archive
 from src.data.readers import (
-    READERS, Archive, MergedReader, PointShape, Reader, ShapeEntry, check_split_identities, layout_of,
+    READERS,
+    Archive,
+    MergedReader,
+    PointShape,
+    Reader,
+    ShapeEntry,
+    check_split_identities,
+    layout_of,
 )
 from src.data.sampling import METHOD, NORMALIZATION, sample_shape
+from src.geometry.clouds import check_cloud
 from src.utils.errors import DatasetError, exit_code_of
 from src.utils.files import disk_errors
 
@@ -111,12 +127,15 @@ def _shape_mapper(reader: Reader, compute: Compute, params: dict, workers: int) 
 def _write_split(
     writer: CacheWriter, split: str, names: list[str], labels: list[int], results: Iterable[Sampled], desc: str
 ) -> None:
-    """Stream per-shape ``(points, normals)`` of ``(S, P, 3)`` into a new split of the cache."""
+    """Stream per-shape ``(points, normals)`` of ``(S, P, 3)`` into a new split of the cache; a shape that is no
+    registrable cloud (:func:`~src.geometry.clouds.check_cloud`: its points identical or on one line, too large) is
+    refused, naming it."""
     results = iter(tqdm(results, total=len(names), desc=desc, unit="shape", disable=None))
     first = next(results)
     shape = (len(names), *first[0].shape)
     out_points, out_normals = writer.add_split(split, shape, labels, names, normals=first[1] is not None)
     for i, (points, normals) in enumerate(itertools.chain([first], results)):
+        check_cloud(points.reshape(-1, 3), f"shape {names[i]}")  # identical points, on one line, or too large
         if points.shape != out_points.shape[1:] or (normals is None) != (out_normals is None):
             raise DatasetError(
                 f"shape {names[i]}: points {points.shape} (normals: {normals is not None}) differ from the "

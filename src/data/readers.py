@@ -192,7 +192,7 @@ def _parent(name: str) -> str:
 
 
 def _lines(data: bytes) -> list[str]:
-    return [s for line in data.decode("utf-8").splitlines() if (s := line.strip())]
+    return [s for line in data.decode("utf-8-sig").splitlines() if (s := line.strip())]
 
 
 class Reader:
@@ -417,7 +417,7 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 def _first_bad_line(data: bytes) -> str:
     """Describe the first line that is not 6 comma-separated numbers finite in float32 (error path only)."""
-    for number, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), start=1):
+    for number, line in enumerate(data.decode("utf-8-sig", errors="replace").splitlines(), start=1):
         if line.strip() and (problem := _line_problem(line.strip())):
             return f"line {number} {problem}: {line.strip()[:80]!r}"
     return "no points (empty file)"

@@ -16,6 +16,7 @@ Each sample also carries its pair's ``overlap`` (for results binned by overlap).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
@@ -26,11 +27,13 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from src.data.dataset import EVAL_STREAM, float_tensor
-from src.data.scans import ScanPair, ScanSource, normalise_pair, read_scans, scan_pairs
+from src.data.scans import ScanPair, ScanSet, ScanSource, normalise_pair, read_scans, scan_pairs
 from src.data.transforms import Compose, RandomRigidTransform, Resample
 from src.utils.errors import ConfigError, DatasetError
 from src.geometry.clouds import check_cloud
 from src.utils.paths import shared_path
+
+log = logging.getLogger(__name__)
 
 DEFAULT_SOURCE = ("data", "stanford", "stanford_bunny_scans.zip")
 """The Stanford Bunny's 10 range scans and bun.conf, inside the shared folder."""
@@ -60,6 +63,17 @@ class ScanPairSettings:
         if unknown:
             raise ConfigError(f"data.pair has unknown keys {sorted(unknown)}; scan pairs take {[f.name for f in fields(cls)]}")
         return cls(**values)
+
+
+def dropped_pairs(scan_sets: list[ScanSet], pairs: list[ScanPair], min_overlap: float) -> dict[str, Any]:
+    """What :func:`~src.data.scans.scan_pairs` left out: how many ordered pairs of scans of one set, why, and
+    the scans that are in no pair (``<set>:<scan>``)."""
+    candidates = sum(len(s.scans) * (len(s.scans) - 1) for s in scan_sets)
+    paired = {(p.scan_set, i) for p in pairs for i in (p.source, p.reference)}
+    unpaired = [f"{s.name}:{scan.name}" for k, s in enumerate(scan_sets) for i, scan in enumerate(s.scans)
+                if (k, i) not in paired]
+    return {"pairs": candidates - len(pairs), "reason": f"overlap <= data.pair.min_overlap={min_overlap}",
+            "scans_in_no_pair": unpaired}
 
 
 class ScanPairDataset(Dataset):
@@ -120,6 +134,7 @@ class ScanPairsDataModule(L.LightningDataModule):
         self.eval_batch_size, self.num_workers, self.seed = eval_batch_size, num_workers, seed
         self.cache: ScanSource | None = None
         self.datasets: dict[str, ScanPairDataset] = {}
+        self.dropped: dict[str, Any] = {}
 
     def setup(self, stage: str | None = None) -> None:
         if stage not in ("test", None):
@@ -128,6 +143,11 @@ class ScanPairsDataModule(L.LightningDataModule):
             return
         self.cache = read_scans(self.source or shared_path(*DEFAULT_SOURCE))
         pairs = scan_pairs(self.cache.scan_sets, self.settings.min_overlap, self.settings.overlap_spacing)
+        self.dropped = dropped_pairs(self.cache.scan_sets, pairs, self.settings.min_overlap)
+        if self.dropped["scans_in_no_pair"]:
+            log.warning("%d scans form no pair (%s) and are left out of the test set: %s",
+                        len(self.dropped["scans_in_no_pair"]), self.dropped["reason"],
+                        ", ".join(self.dropped["scans_in_no_pair"]))
         self.datasets["test"] = ScanPairDataset(self.cache, pairs, self.settings, self.seed)
 
     def test_dataloader(self) -> DataLoader:

@@ -144,7 +144,10 @@ def _ply_vertex_header(data: bytes, name: str) -> tuple[str, int, list[tuple[str
     for tokens in (line.split() for line in data[:end].decode("ascii", errors="replace").splitlines()):
         if tokens[:1] == ["format"] and len(tokens) > 1:
             fmt = tokens[1]
-        elif tokens[:1] == ["element"] and len(tokens) == 3 and tokens[2].isdigit():
+        elif tokens[:1] == ["element"]:
+            if len(tokens) != 3 or not tokens[2].isdigit():
+                raise DatasetError(f"{name}: malformed PLY header line {' '.join(tokens)!r}: expected 'element <name> "
+                                   "<count>' (e.g. 'element face 0')")
             elements.append((tokens[1], int(tokens[2]), []))
         elif tokens[:1] == ["property"] and elements and len(tokens) >= 3:
             elements[-1][2].append((tokens[-1], "list" if tokens[1] == "list" else tokens[1]))
@@ -217,7 +220,7 @@ def read_scans(source: str | Path) -> ScanSource:
     for conf in confs:
         data = archive.read(conf)
         digest.update(data)
-        entries[conf] = _members(conf, parse_conf(data.decode("utf-8", errors="replace"), conf))
+        entries[conf] = _members(conf, parse_conf(data.decode("utf-8-sig", errors="replace"), conf))
     _check_members(archive, entries)
     scan_sets = []
     for conf, members in entries.items():

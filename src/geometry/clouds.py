@@ -4,7 +4,8 @@
 They take NumPy arrays, torch tensors (on any device; recognised without importing torch) or nested
 lists, and refuse a bad cloud with one line, a :class:`~src.utils.errors.PointCloudError` that starts with the
 cloud's name: not real numbers (bool, complex, object or text arrays are refused, never converted), not
-(N, 3), fewer than :data:`MIN_POINTS` points, NaN or infinite coordinates, and (unless allowed) all points
+(N, 3), fewer than :data:`MIN_POINTS` points, NaN or infinite coordinates, coordinates beyond
+:data:`MAX_COORDINATE` (their squared distances overflow float32), and (unless allowed) all points
 on one line, within the precision of the input's own dtype (a line stored in float32 is a line).
 """
 
@@ -22,6 +23,9 @@ MIN_POINTS = 3
 _COLLINEAR_RTOL = 1e-9
 #: The same in units of the input dtype's machine epsilon, for less precise inputs (float32: 1.9e-6).
 _COLLINEAR_EPS = 16
+#: Largest coordinate magnitude whose squared distances stay finite in float32 (nearest neighbours, Chamfer
+#: distance, the learned methods' similarity matrices): sqrt(float32 max) / 4, about 4.6e18.
+MAX_COORDINATE = float(np.sqrt(np.finfo(np.float32).max)) / 4
 #: dtype kinds of real numbers: signed and unsigned integers, floats.
 _REAL_KINDS = "iuf"
 
@@ -59,6 +63,10 @@ def check_cloud(points: Any, name: str = "points", allow_degenerate: bool = Fals
     if bad.any():
         n_bad = int(bad.any(axis=1).sum())
         raise PointCloudError(f"{name}: {n_bad} of {arr.shape[0]} points have NaN or infinite coordinates")
+    largest = float(np.abs(arr).max())
+    if largest > MAX_COORDINATE:
+        raise PointCloudError(f"{name}: coordinates up to {largest:.3g}, beyond {MAX_COORDINATE:.3g}, where squared "
+                              "distances overflow single precision: rescale the cloud (e.g. to the unit sphere)")
     if not allow_degenerate:
         _check_not_degenerate(arr, name, rtol)
     return np.ascontiguousarray(arr)

@@ -14,12 +14,17 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 from torch.optim import Optimizer
-from torch.optim.lr_scheduler import LambdaLR, MultiStepLR, OneCycleLR, ReduceLROnPlateau
+from torch.optim.lr_scheduler import (
+    LambdaLR,
+    MultiStepLR,
+    OneCycleLR,
+    ReduceLROnPlateau,
+)
 from torchmetrics import MeanMetric
 
-from src.utils.errors import ConfigError, DivergenceError
-from src.metrics import SCORE, RegistrationMetrics
+from src.metrics import METRIC_NAMES, SCORE, RegistrationMetrics
 from src.models.base import check_network
+from src.utils.errors import ConfigError, DivergenceError
 
 #: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
 SchedulerConfig = dict[str, Any]
@@ -152,6 +157,9 @@ class RegistrationModule(L.LightningModule):
     ``conf/recipe/<model>.yaml`` (docs/recipes.md). ``lr_milestones``/``lr_gamma`` (step milestones)
     are what checkpoints and model configs written before the recipes hold.
     """
+
+    #: What each validation logs, that a checkpoint can be selected on (``callbacks.checkpoint.monitor``).
+    VALIDATION_METRICS: tuple[str, ...] = ("val/loss", *(f"val/{name}" for name in METRIC_NAMES), "val_score")
 
     def __init__(
         self,

@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from src.utils.errors import ConfigError
 from src.geometry import matrix_to_quat, quat_canonical, quat_multiply, quat_normalize, quat_to_matrix, se3_apply, se3_from_rt
 from src.models.base import MIN_CHANNELS, scaled
 
@@ -384,6 +385,10 @@ class OMNet(nn.Module):
             raise ValueError(f"trans_loss must be one of {TRANSLATION_LOSSES}, got {trans_loss!r}")
         if num_iters < 1:
             raise ValueError(f"num_iters must be >= 1, got {num_iters}")
+        for name, value in (("mask_loss", mask_loss), ("connection", connection)):
+            if value and not mask_module:  # (recorded true, but there would be no mask to train or connect)
+                raise ValueError(f"{name}=true needs the mask module, which mask_module=false removes: set "
+                                 f"model.network.{name}=false too (Table 3's B: +model/ablation=B)")
         self.num_iters, self.share_weights = num_iters, share_weights
         self.mask_module, self.mask_loss_enabled = mask_module, mask_loss and mask_module
         self.mask_start_iter, self.mask_mode, self.topk = mask_start_iter, mask_mode, topk
@@ -402,7 +407,10 @@ class OMNet(nn.Module):
         """Hard 0/1 mask from mask logits (B,N,2): argmax, or the top-k overlap probabilities."""
         if self.mask_mode == "argmax":
             return logits.argmax(dim=-1).to(logits.dtype)
-        k = min(self.topk, logits.shape[1])
+        if self.topk >= logits.shape[1]:
+            raise ConfigError(f"model.network.topk={self.topk} keeps every one of the {logits.shape[1]} points of a "
+                              f"cloud: the top-k masks would mask nothing; choose topk < {logits.shape[1]}")
+        k = self.topk
         idx = logits.softmax(dim=-1)[..., 1].topk(k, dim=1).indices
         return torch.zeros_like(logits[..., 0]).scatter_(1, idx, 1.0)
 

@@ -7,7 +7,8 @@ writes ``checkpoints/<name>.ckpt`` (weights and the network config only: no opti
 loads with ``RegistrationModule.load_from_checkpoint``) and ``checkpoints/<name>.json`` (what it is,
 how it was trained, its test metrics and any further evaluations). ``python -m src.eval`` without
 ``ckpt_path`` uses the shipped checkpoint whose experiment (task, dataset, sampling, partial manner)
-and network match the config.
+and network match the config, once :func:`verify_card` has checked the card against the file: its sha256,
+and the experiment the checkpoint itself records (``trained_on``, :mod:`src.run.trained_on`).
 """
 
 from __future__ import annotations
@@ -26,8 +27,7 @@ from src.models.module import RegistrationModule
 from src.utils.paths import SHIPPED_DIR, without_folder
 from src.run.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
-
-IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
+from src.run.trained_on import IDENTITY_KEYS, KEY as TRAINED_ON, trained_on_record
 
 
 def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR, network: str | None = None) -> Path:
@@ -40,12 +40,36 @@ def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR, networ
 
     for path, card in cards.items():
         if all(card["experiment"][k] == identity[k] for k in IDENTITY_KEYS) and network in (None, card["network"]["_target_"]):
-            return path.with_suffix(".ckpt")
+            return verify_card(path.with_suffix(".ckpt"), card)
     available = [describe(card["experiment"], card["network"]["_target_"] if network else None) for card in cards.values()]
     raise CheckpointError(
         f"no shipped checkpoint for {describe(identity, network)} (shipped: {'; '.join(available) or 'none'}): "
         "train one with `python -m src.train` and pass ckpt_path=PATH"
     )
+
+
+def verify_card(ckpt: Path, card: dict[str, Any]) -> Path:
+    """``ckpt`` once its ``card`` is shown to describe it (CheckpointError otherwise): the file's sha256 is the
+    card's, and the experiment the checkpoint records (``trained_on``) is the one the card claims."""
+    if not ckpt.is_file():
+        raise CheckpointError(f"{ckpt.with_suffix('.json')} describes {ckpt}, which does not exist")
+    digest = _sha256(ckpt)
+    if digest != card.get("sha256"):
+        raise CheckpointError(f"{ckpt} has sha256 {digest[:12]}…, not the {str(card.get('sha256'))[:12]}… of its card "
+                              f"{ckpt.with_suffix('.json').name}: the file or the card was changed; restore both, or "
+                              "export the checkpoint again (python -m src.models.pretrained export)")
+    recorded = torch.load(ckpt, map_location="cpu", weights_only=False, mmap=True).get(TRAINED_ON) or {}
+    claimed = {k: card["experiment"].get(k) for k in IDENTITY_KEYS}
+    found = {k: recorded.get(k) for k in IDENTITY_KEYS}
+    if claimed != found:
+        raise CheckpointError(f"the card {ckpt.with_suffix('.json').name} claims {_identity(claimed)}, but {ckpt} was "
+                              f"trained on {_identity(found) if recorded else 'an unrecorded experiment'}: the weights "
+                              "decide; restore the card, or export the checkpoint again")
+    return ckpt
+
+
+def _identity(identity: dict[str, Any]) -> str:
+    return " ".join(f"{k}={v}" for k, v in identity.items())
 
 
 def _sha256(path: Path) -> str:
@@ -99,8 +123,10 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.ckpt"
     hyper_parameters = json.loads(_portable(json.dumps(full["hyper_parameters"]), run_dir))  # e.g. feature_init
+    identity = {k: results[k] for k in IDENTITY_KEYS} | {"task": run_experiment(run_dir, results)}
+    trained_on = trained_on_record(identity, config["data"]["splits"], config["data"].get("remove_axisymmetric", True))
     torch.save({"state_dict": stored_weights(full["state_dict"], half), "hyper_parameters": hyper_parameters,
-                "pytorch-lightning_version": full["pytorch-lightning_version"]}, target)
+                "pytorch-lightning_version": full["pytorch-lightning_version"], TRAINED_ON: trained_on}, target)
     network = hyper_parameters["network"]
     card: dict[str, Any] = {
         "name": name,
@@ -109,8 +135,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
         "size_mb": round(target.stat().st_size / 2**20, 2),
         "weights_dtype": "float16" if half else "float32",
         "note": note,
-        "experiment": {k: results[k] for k in IDENTITY_KEYS} | {
-            "task": run_experiment(run_dir, results), "splits": config["data"]["splits"], "pair": config["data"]["pair"]},
+        "experiment": identity | {"splits": config["data"]["splits"], "pair": config["data"]["pair"]},
         "network": network,
         "parameters": sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters()),
         "training": {

@@ -28,6 +28,8 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """A checkpoint written by ``src.train`` (memory-mapped where the format allows); CheckpointError
     if the file is missing, unreadable (truncated, another kind of file) or holds no network config."""
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint {path} is a folder: pass a .ckpt file in it (e.g. {path / 'last.ckpt'})")
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
@@ -43,7 +45,18 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     hparams = checkpoint.get("hyper_parameters") if isinstance(checkpoint, dict) else None
     if not isinstance(hparams, dict) or not (hparams.get("network") or {}).get("_target_"):
         raise CheckpointError(f"{path} was not written by src.train (no network config inside)")
+    check_finite_weights(checkpoint.get("state_dict") or {}, path)
     return checkpoint
+
+
+def check_finite_weights(state_dict: dict[str, Any], path: str | Path) -> None:
+    """CheckpointError naming the first weight tensor with NaN or infinite values (a corrupted file, or a
+    diverged run's): it would fail much later, e.g. in an SVD, or give NaN results."""
+    for key, value in state_dict.items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            bad = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(f"{path}: {bad} of the {value.numel()} values of weight {key} are NaN or infinite: "
+                                  "the file is corrupted (or from a diverged run); use an intact copy")
 
 
 def read_checkpoint_network(path: str | Path) -> str:

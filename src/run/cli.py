@@ -19,10 +19,15 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
+from hydra.errors import (
+    ConfigCompositionException,
+    MissingConfigException,
+    OverrideParseException,
+)
 from omegaconf import DictConfig
 
 from src.utils.errors import exit_on_user_error
+from src.utils.files import disk_error
 
 _MISSING = re.compile(r"Could not find '([^']+)/([^']+)'")
 _NOT_OVERRIDABLE = re.compile(r"Could not override '([^']+)'")
@@ -99,6 +104,12 @@ def hydra_command(task: Callable[[DictConfig], Any], config_dir: Path, config_na
         except (ConfigCompositionException, OverrideParseException) as err:
             print(f"error: {describe_hydra_error(err, config_dir, _default_config(config_dir, config_name))}",
                   file=sys.stderr)
+            sys.exit(2)
+        except OSError as err:  # Hydra creating the run folder (a file there, a read-only mount), before any task
+            problem = disk_error(err, "creating the run folder", Path(err.filename or "."))
+            if problem is None:
+                raise
+            print(f"error: {problem}", file=sys.stderr)
             sys.exit(2)
 
     return command

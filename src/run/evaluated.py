@@ -38,12 +38,16 @@ class PairCounter(L.Callback):
 
 
 def evaluated_record(trainer: L.Trainer) -> dict[str, Any]:
-    """``test_pairs``, ``test_dataset`` and, for a cache datamodule, ``test_split``, ``test_categories`` (a
-    list) and ``test_shapes`` of the trainer's last test (needs its :class:`PairCounter`)."""
+    """``test_pairs`` (scored), ``test_set_pairs`` (the test set's; fewer are scored under
+    ``trainer.limit_test_batches``), ``test_dropped`` (the pairs the datamodule left out of the set, and why:
+    ``{"pairs": 0}`` for a cache's), ``test_dataset`` and, for a cache datamodule, ``test_split``,
+    ``test_categories`` (a list) and ``test_shapes`` of the trainer's last test (needs its :class:`PairCounter`)."""
     counter = next(c for c in trainer.callbacks if isinstance(c, PairCounter))
     datamodule = trainer.datamodule
-    record: dict[str, Any] = {"test_pairs": counter.pairs, "test_dataset": str(datamodule.dataset)}
     cache, test_set = getattr(datamodule, "cache", None), getattr(datamodule, "datasets", {}).get("test")
+    record: dict[str, Any] = {"test_pairs": counter.pairs, "test_set_pairs": None if test_set is None else len(test_set),
+                              "test_dropped": getattr(datamodule, "dropped", None) or {"pairs": 0},
+                              "test_dataset": str(datamodule.dataset)}
     if not isinstance(cache, Cache) or test_set is None:  # (scan pairs: no cache splits)
         return record
     shapes = test_set.shape_indices[np.arange(counter.pairs) % len(test_set)]
@@ -56,6 +60,11 @@ def evaluated_record(trainer: L.Trainer) -> dict[str, Any]:
 def describe_evaluated(record: dict[str, Any]) -> str:
     """``32 pairs of synthetic data, split test: airplanes, cars, ... (7 categories), 32 shapes``."""
     text = f"{record['test_pairs']} pairs of {record['test_dataset']} data"
+    if record.get("test_set_pairs") not in (None, record["test_pairs"]):
+        text = f"{record['test_pairs']} of {record['test_set_pairs']} pairs of {record['test_dataset']} data"
+    dropped = record.get("test_dropped") or {}
+    if dropped.get("pairs"):
+        text += f" ({dropped['pairs']} pairs left out: {dropped['reason']})"
     if "test_split" not in record:
         return text
     categories = record["test_categories"]

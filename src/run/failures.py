@@ -24,7 +24,7 @@ from src.run.cli import hydra_command
 from src.run.distributed import distributed_job_scope, global_rank
 from src.run.resume import resume_command
 from src.utils.errors import ConfigError, Interrupted, UserError, user_error_behind
-from src.utils.files import write_text_atomic
+from src.utils.files import disk_errors, write_text_atomic
 from src.utils.interrupts import interruptible
 from src.utils.paths import REPO_ROOT
 from src.validation import validate_config
@@ -94,7 +94,8 @@ def write_failure(output_dir: Path, err: BaseException) -> Path:
         hc = HydraConfig.get()
         record["overrides"] = list(hc.overrides.task)
         record["job"] = {"name": hc.job.name, "num": hc.job.get("num"), "id": hc.job.get("id")}
-    output_dir.mkdir(parents=True, exist_ok=True)
+    with disk_errors("writing failure.json", output_dir):
+        output_dir.mkdir(parents=True, exist_ok=True)
     path = output_dir / _failure_name(rank)
     write_text_atomic(path, json.dumps(record, indent=2))
     return path

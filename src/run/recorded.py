@@ -12,15 +12,18 @@ line (the key and why), instead of being written into ``config_resolved.yaml`` a
   (``trainer.limit_val_batches=0`` turns it off) and a checkpoint kept (``save_top_k=0`` keeps none): else
   the test would run on the last weights, not the selected ones (:func:`refuse_unused_in_train`).
 * Both: a data override that the run's pair pipeline does not read (:data:`READ_ONLY_WITH`, e.g.
-  ``data.pair.rpmnet_p_keep`` in the PRNet manner) is refused (:func:`refuse_unread_overrides`).
+  ``data.pair.rpmnet_p_keep`` in the PRNet manner, OMNet's ``model.network.topk`` under argmax masks) is
+  refused (:func:`refuse_unread_overrides`).
 """
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
@@ -70,7 +73,10 @@ def refuse_unused_in_train(cfg: DictConfig) -> None:
                           "weights; give one of the two")
     checkpoint = (cfg.get("callbacks") or {}).get("checkpoint")
     monitor = checkpoint.get("monitor") if checkpoint is not None else None
-    if not monitor or cfg.trainer.get("fast_dev_run"):  # (fast_dev_run validates one batch whatever the limits)
+    if not monitor:
+        return
+    refuse_unknown_monitor(str(monitor), str(cfg.model._target_))
+    if cfg.trainer.get("fast_dev_run"):  # (fast_dev_run validates one batch whatever the limits)
         return
     limit = cfg.trainer.get("limit_val_batches")
     if limit is not None and not isinstance(limit, bool) and limit == 0:
@@ -82,6 +88,36 @@ def refuse_unused_in_train(cfg: DictConfig) -> None:
         raise ConfigError(f"callbacks.checkpoint.save_top_k=0 keeps no checkpoint selected on {monitor}, so the test "
                           "would run on the last weights: keep one (save_top_k=1, or -1: all), or keep the last "
                           "checkpoint with callbacks.checkpoint.monitor=null")
+
+
+#: Logged during training by every module (losses, the training clock): a checkpoint may be selected on them too.
+_TRAINING_LOGS = ("train/", "train_loss", "time/")
+
+
+def refuse_unknown_monitor(monitor: str, module_target: str) -> None:
+    """ConfigError, before training, for a ``callbacks.checkpoint.monitor`` that the module (its class's
+    ``VALIDATION_METRICS``) never logs: Lightning would find out only after the first validation."""
+    try:
+        known = getattr(hydra.utils.get_class(module_target), "VALIDATION_METRICS", None)
+    except Exception:  # noqa: BLE001 - an unknown module: its instantiation names the problem
+        return
+    if known is None or monitor in known or monitor.startswith(_TRAINING_LOGS):
+        return
+    close = difflib.get_close_matches(monitor, known, n=3)
+    hint = f"did you mean {', '.join(close)}? " if close else ""
+    raise ConfigError(f"callbacks.checkpoint.monitor={monitor} is never logged, so no checkpoint could be selected on it: "
+                      f"{hint}a validation logs {', '.join(known)} (or null: keep the last checkpoint)")
+
+
+def refuse_resume_past_budget(cfg: DictConfig, checkpoint: Mapping[str, Any]) -> None:
+    """ConfigError when the checkpoint to resume (``ckpt_path``) is already at or past ``trainer.max_steps``:
+    the resumed run would train nothing, then test and write metrics as a new run."""
+    step, max_steps = int(checkpoint.get("global_step", 0)), cfg.trainer.get("max_steps")
+    if max_steps is None or max_steps == -1 or step < max_steps:
+        return
+    raise ConfigError(f"ckpt_path={cfg.ckpt_path} is at step {step}, and trainer.max_steps={max_steps}: the resumed "
+                      "run would train nothing; raise trainer.max_steps to train on, or evaluate the checkpoint with "
+                      "src.eval")
 
 
 @dataclass(frozen=True)
@@ -115,6 +151,7 @@ READ_ONLY_WITH: dict[str, ReadOnlyWith] = {
     "data.pair.unit_cube": _TWIST,
     "data.pair.noise_clip": ReadOnlyWith("data.pair.noise_sigma", (0,), unless=True),
     "sampling": ReadOnlyWith("data.dataset", ("scan_pairs",), unless=True),  # two real scans: no sampling
+    "model.network.topk": ReadOnlyWith("model.network.mask_mode", ("topk",)),  # (OMNet: argmax masks take no k)
 }
 
 

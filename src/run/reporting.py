@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -12,8 +13,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.run.distributed import global_rank
 from src.run.evaluated import describe_evaluated
-from src.utils.files import write_atomic, write_text_atomic
 from src.run.wandb_logging import log_card
+from src.utils.errors import DatasetError
+from src.utils.files import disk_errors, write_atomic, write_text_atomic
 
 
 def save_resolved_config(cfg: DictConfig) -> None:
@@ -21,8 +23,9 @@ def save_resolved_config(cfg: DictConfig) -> None:
     if global_rank() != 0:
         return
     output_dir = Path(cfg.output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(output_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    with disk_errors("writing the run folder", output_dir):  # (a file there, a read-only mount: one line)
+        output_dir.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(output_dir / "config_resolved.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
 
 def read_csv_logs(run_dir: Path) -> pd.DataFrame:
@@ -48,6 +51,7 @@ def report_test_metrics(
 ) -> None:
     """On rank 0 (under DDP every rank holds the same synchronised metrics): write metrics.json/.csv
     into the run dir (``extra`` joins the context, e.g. training time) and print the table."""
+    refuse_non_finite_metrics(metrics, cfg.data.dataset)
     if not trainer.is_global_zero:
         return
     context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
@@ -57,6 +61,15 @@ def report_test_metrics(
     tested = describe_evaluated(extra) if "test_pairs" in extra else f"{cfg.data.dataset} data"
     print(f"\nTest metrics ({cfg.task_name} protocol, {cfg.sampling}, {cfg.partial}; {tested}; Error(R) in degrees, "
           f"lower is better):\n{format_metrics(metrics)}\nwrote {Path(cfg.output_dir) / 'metrics.json'} and metrics.csv")
+
+
+def refuse_non_finite_metrics(metrics: dict[str, float], dataset: str) -> None:
+    """DatasetError naming the metrics that are NaN or infinite (e.g. a Chamfer distance that overflowed):
+    such a result is never written as a number."""
+    bad = [f"{k}={v}" for k, v in metrics.items() if not math.isfinite(v)]
+    if bad:
+        raise DatasetError(f"the test gave non-finite metrics ({', '.join(bad)}) on {dataset} data: no result is "
+                           "written; check the test shapes (scale, NaN) and the checkpoint's weights")
 
 
 def format_metrics(metrics: dict[str, float]) -> str:

@@ -82,11 +82,16 @@ def user_error_behind(err: BaseException) -> UserError | None:
 
 def exit_code_of(action: Callable[[], Any]) -> int:
     """Run a command-line action: 0 when it succeeds; a UserError (or an error raised from one)
-    prints ``error: <message>`` on stderr and gives exit status 2; an :class:`Interrupted` run
-    prints its line and gives ``128 + signal``."""
+    prints ``error: <message>`` on stderr and gives exit status 2; an :class:`Interrupted` run, or one
+    stopped by Ctrl+C (``KeyboardInterrupt``, once the action's own clean-up has run), prints its line and
+    gives ``128 + signal``."""
     try:
         action()
     except Interrupted as err:
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        err = Interrupted(signal.SIGINT)
         print(f"error: {err}", file=sys.stderr)
         return err.exit_code
     except Exception as err:

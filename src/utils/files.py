@@ -30,6 +30,7 @@ def temporary_path(path: Path) -> Path:
 
 FULL = (errno.ENOSPC, errno.EDQUOT)
 DENIED = (errno.EACCES, errno.EPERM, errno.EROFS)
+NOT_A_FOLDER = (errno.EEXIST, errno.ENOTDIR)  # (creating a folder where a file is)
 NEARLY_FULL = 1 << 20
 """Free bytes under which a writer's failure without an errno (torch's ``torch.save``: a RuntimeError) is
 taken for a full disk."""
@@ -52,6 +53,9 @@ def disk_error(err: BaseException, what: str, folder: Path) -> DiskError | None:
                          "(OMNET_CACHE_DIR / --cache-root for caches, hydra.run.dir or output_dir for runs)")
     if code in DENIED:
         return DiskError(f"{what}: cannot write in {folder} ({os.strerror(code)}): make it writable, or write "
+                         "elsewhere (OMNET_CACHE_DIR / --cache-root for caches, hydra.run.dir or output_dir for runs)")
+    if code in NOT_A_FOLDER:
+        return DiskError(f"{what}: {folder} or a folder above it is a file, not a folder: move the file, or write "
                          "elsewhere (OMNET_CACHE_DIR / --cache-root for caches, hydra.run.dir or output_dir for runs)")
     return None
 

@@ -34,7 +34,8 @@ def test_export_writes_weights_only_checkpoint_and_card(run_dir, tmp_path):
     assert [row["step"] for row in card["training"]["validation"]] == [0, 1]
     assert set(card["metrics"]["test"]) >= {"Error(R)", "Error(t)"}
     saved = torch.load(target, weights_only=False)
-    assert set(saved) == {"state_dict", "hyper_parameters", "pytorch-lightning_version"}  # no optimiser state
+    assert set(saved) == {"state_dict", "hyper_parameters", "pytorch-lightning_version", "trained_on"}  # no optimiser state
+    assert {k: saved["trained_on"][k] for k in IDENTITY} == {k: card["experiment"][k] for k in IDENTITY}
     best = torch.load(json.loads((run_dir / "metrics.json").read_text())["checkpoint"], weights_only=False)
     assert all(torch.equal(saved["state_dict"][k], v) for k, v in best["state_dict"].items())
     assert card["parameters"] == sum(p.numel() for p in RegistrationModule.load_from_checkpoint(target).parameters())

@@ -51,7 +51,7 @@ def test_a_first_run_prints_what_it_does_its_estimate_and_its_results_once(tmp_p
     assert result.returncode == 0, out
     assert "train: synthetic data (SYNTHETIC procedural shapes, not ModelNet40), 14 training shapes | OMNet " in out
     assert "3 steps x batch 2 on cpu" in out and "s/step measured over steps 2-2: the remaining 1 steps take ~" in out
-    assert out.count("Test metrics (unseen_shapes protocol, ts, prnet; 2 pairs of synthetic data, split test: ") == 1
+    assert out.count("Test metrics (unseen_shapes protocol, ts, prnet; 2 of 7 pairs of synthetic data, split test: ") == 1
     assert f"wrote {tmp_path / 'run' / 'metrics.json'}" in out
     for noise in ("Tip:", "GPU available", "Seed set", "was configured so", "LeafSpec", "Trainable params",
                   "DataLoader 0", "does not have many workers"):
@@ -72,8 +72,9 @@ def test_a_record_labels_what_was_evaluated_not_the_experiment(merged_root):
     counter = PairCounter()
     counter.pairs = len(datamodule.datasets["test"])
     record = evaluated_record(SimpleNamespace(callbacks=[counter], datamodule=datamodule))
-    assert record == {"test_pairs": 4, "test_dataset": "modelnet40_resampled", "test_split": "train",
-                      "test_categories": ["bathtub"], "test_shapes": 4}
+    assert record == {"test_pairs": 4, "test_set_pairs": 4, "test_dropped": {"pairs": 0},
+                      "test_dataset": "modelnet40_resampled", "test_split": "train", "test_categories": ["bathtub"],
+                      "test_shapes": 4}
 
 
 def _trainer(total: int, step: int, device: str = "cpu"):

@@ -67,7 +67,7 @@ def test_overlap_labels_by_hand():
 @pytest.mark.parametrize(
     "flags",
     [
-        dict(mask_module=False, fusion=False, connection=False),  # B
+        dict(mask_module=False, mask_loss=False, fusion=False, connection=False),  # B
         dict(mask_loss=False, fusion=False, connection=False),  # B+M
         dict(fusion=False, connection=False),  # B+M+ML
         dict(connection=False),  # B+M+ML+F

@@ -25,11 +25,11 @@ CONFIGS = {
     "shared": dict(share_weights=True),
     "shared_every_layer": dict(share_weights=True, fusion_masking="every_layer"),
     "topk": dict(mask_mode="topk", topk=30),
-    "B": dict(mask_module=False, fusion=False, connection=False),
+    "B": dict(mask_module=False, mask_loss=False, fusion=False, connection=False),
     "B+M+ML": dict(fusion=False, connection=False),
     "B+M+ML+F": dict(connection=False),
     "no_connection_no_fusion": dict(fusion=False),
-    "no_mask_module": dict(mask_module=False),
+    "no_mask_module": dict(mask_module=False, mask_loss=False, connection=False),
 }
 
 
