@@ -41,14 +41,20 @@ from src.utils.files import write_text_atomic
 
 RESUMABLE = 75  # sysexits' EX_TEMPFAIL: stopped at a time limit, progress saved; run the same command again
 RECORD = "chain.json"
+AGAIN = "run the same command again to continue"
 OWN_KEYS = ("hydra.run.dir", "ckpt_path")  # set by the chain, never by its overrides
 SUBMIT_DEFAULTS: dict[str, Any] = {"gpus_per_node": 1, "tasks_per_node": 1, "cpus_per_task": 9,
                                    "slurm_signal_delay_s": 180}
 
 
-def _ignore_sigusr2() -> None:
-    """In the training process: SLURM's SIGUSR2 (default action: terminate) is the chain's to act on."""
-    signal.signal(signal.SIGUSR2, signal.SIG_IGN)
+def _start(command: list[str]) -> subprocess.Popen:
+    """The training process, with SIGUSR2 blocked (inherited across exec): SLURM's signal before a job's time limit,
+    whose default action would kill it, is the chain's to act on; one arriving meanwhile reaches the chain after."""
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR2})
+    try:
+        return subprocess.Popen(command)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
 
 @dataclass
@@ -64,7 +70,7 @@ class Chain:
         self.run_dir = Path(self.run_dir)
         self._process: subprocess.Popen | None = None
         self._waiter: threading.Thread | None = None  # reaps the training: the main thread stays free for signals
-        self._started, self._from_step, self._recorded = 0.0, 0, False
+        self._started, self._from_step, self._recorded, self._started_at = 0.0, 0, False, ""
         for override in self.overrides:
             key = override.lstrip("+~").split("=", 1)[0]
             if key in OWN_KEYS or override in ("-m", "--multirun"):
@@ -96,10 +102,11 @@ class Chain:
 
     def steps(self) -> tuple[int, int | None]:
         """The step of ``last.ckpt`` (0 without one) and the run's ``trainer.max_steps`` (None if unknown)."""
-        import torch
+        step = 0
+        if self.last.is_file():
+            import torch  # (only here: a first call starts the training, and takes signals, at once)
 
-        step = int(torch.load(self.last, map_location="cpu", weights_only=False, mmap=True)["global_step"]) \
-            if self.last.is_file() else 0
+            step = int(torch.load(self.last, map_location="cpu", weights_only=False, mmap=True)["global_step"])
         config = self.run_dir / "config_resolved.yaml"
         max_steps = yaml.safe_load(config.read_text()).get("trainer", {}).get("max_steps") if config.is_file() else None
         return step, (int(max_steps) if isinstance(max_steps, int) and max_steps > 0 else None)
@@ -117,7 +124,8 @@ class Chain:
               f"{' '.join(command[1:])}", flush=True)
         previous = {s: signal.signal(s, self._note) for s in (signal.SIGTERM, signal.SIGINT)}
         self._started, self._recorded = time.monotonic(), False
-        self._process = subprocess.Popen(command, preexec_fn=_ignore_sigusr2)
+        self._started_at = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        self._process = _start(command)
         self._waiter = threading.Thread(target=self._process.wait, daemon=True)
         self._waiter.start()
         try:
@@ -149,11 +157,11 @@ class Chain:
             code = self._exit_status()
         return self._finish(record, code, stopped_by)
 
-    def _finish(self, record: dict[str, Any], code: int, stopped_by: str | None) -> int:
+    def _finish(self, record: dict[str, Any], code: int, stopped_by: str | None, next_step: str = AGAIN) -> int:
         """Record the call that ended with ``code``; its exit status, with one line on how to go on."""
         step, max_steps = self.steps()
         interrupted = code in (128 + signal.SIGTERM, 128 + signal.SIGINT, -signal.SIGTERM, -signal.SIGINT)  # < 0: before its handlers
-        record["calls"].append({"started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        record["calls"].append({"started": self._started_at,
                                 "seconds": round(time.monotonic() - self._started, 1), "from_step": self._from_step,
                                 "to_step": step, "max_steps": max_steps, "exit": code,
                                 "stopped_by": stopped_by or ("a signal" if interrupted else None)})
@@ -165,8 +173,7 @@ class Chain:
             print(f"chain: {self.run_dir} is done: step {step:,}{of} in {len(record['calls'])} calls")
             return 0
         if interrupted:
-            print(f"chain: stopped at step {step:,}{of} by {stopped_by or 'a signal'}; run the same command again "
-                  "to continue", file=sys.stderr)
+            print(f"chain: stopped at step {step:,}{of} by {stopped_by or 'a signal'}; {next_step}", file=sys.stderr)
             return RESUMABLE
         return code
 
@@ -178,24 +185,24 @@ class Chain:
         if self._process is not None and not self._recorded:
             if self._process.returncode is None:
                 self._process.send_signal(signal.SIGTERM)
-            if self._finish(self.record(), self._exit_status(), "the job's time limit") != RESUMABLE:
+            if self._finish(self.record(), self._exit_status(), "the job's time limit", "requeued") != RESUMABLE:
                 return None  # done, or failed: nothing to requeue
         return submitit.helpers.DelayedSubmission(replace(self))
 
 
-def submit(chain: Chain, options: dict[str, Any], cluster: str, requeues: int) -> str:
-    """Submit ``chain`` as a job (submitit, logs in ``RUN_DIR/.submitit``) requeued at each time limit; its id."""
+def submit(chain: Chain, options: dict[str, Any], cluster: str, requeues: int) -> Any:
+    """Submit ``chain`` as a job (submitit, logs in ``RUN_DIR/.submitit``) requeued at each time limit; the job."""
     import submitit
 
     if chain.minutes is None:
         raise ConfigError("--submit needs --minutes (the job's time limit)")
-    executor = submitit.AutoExecutor(folder=chain.run_dir / ".submitit" / "%j", cluster=cluster,
-                                     **{f"{cluster}_max_num_timeout": requeues})
+    executor = submitit.AutoExecutor(folder=chain.run_dir / ".submitit", cluster=cluster,
+                                     **{f"{name}_max_num_timeout": requeues for name in ("slurm", "local")})
     executor.update_parameters(**{**SUBMIT_DEFAULTS, "timeout_min": math.ceil(chain.minutes), **options})
     job = executor.submit(replace(chain, minutes=None))
     print(f"chain: submitted job {job.job_id} ({cluster}), requeued at its time limit until {chain.run_dir} is done "
           f"(at most {requeues} times); logs in {chain.run_dir / '.submitit'}; progress in {chain.run_dir / RECORD}")
-    return str(job.job_id)
+    return job
 
 
 def _option(text: str) -> tuple[str, Any]:
