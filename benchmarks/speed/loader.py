@@ -9,13 +9,15 @@ pairs a batch) is iterated for ``--batches`` batches after one untimed batch. Wi
 pairs are made in this process, with one torch thread: the rate is pairs per second of this process's CPU time
 (``time.process_time``), what one loader worker process makes per second of a core it has to itself, and does
 not depend on other jobs sharing the machine. With ``--workers N`` the rate is wall-clock pairs per second of N
-worker processes, plus their CPU time (read when they exit, ``RUSAGE_CHILDREN``) and the rate per CPU-second.
+worker processes (persistent, as in training: started once), plus their CPU time (read when they exit,
+``RUSAGE_CHILDREN``) and the rate per CPU-second.
 Each result is printed as one Markdown row, with the command.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import resource
 import sys
 import time
@@ -49,8 +51,8 @@ def _children_cpu_s() -> float:
 
 def measure(overrides: list[str], batches: int, workers: int = 0) -> LoaderRate:
     """The train loader of ``conf/`` composed with ``overrides`` and ``workers`` loader processes, timed over
-    ``batches`` batches (its epochs repeated as needed); in-process, after a first untimed batch; with workers,
-    their start-up (once an epoch) is timed too, and their CPU time counted when they exit at the epoch's end."""
+    ``batches`` batches (its epochs repeated as needed); in-process, after a first untimed batch; with workers
+    (persistent, as in training), their start-up is timed too, and their CPU time counted when they exit."""
     import hydra
     import torch
 
@@ -60,21 +62,25 @@ def measure(overrides: list[str], batches: int, workers: int = 0) -> LoaderRate:
         raise ConfigError(f"--batches must be at least 1 and --workers at least 0 (got {batches}, {workers})")
     torch.set_num_threads(1)
     cfg = compose_conf([*overrides, f"data.num_workers={workers}", "data.pin_memory=false",
-                        "data.persistent_workers=false", "output_dir=unused"])
+                        f"data.persistent_workers={workers > 0}", "output_dir=unused"])
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.setup("fit")
+    loader = datamodule.train_dataloader()
     if workers == 0:
-        next(iter(datamodule.train_dataloader()))  # lazy imports and caches, untimed
+        next(iter(loader))  # lazy imports and caches, untimed
     children, cpu, wall = _children_cpu_s(), time.process_time(), time.perf_counter()
     pairs = 0
     while pairs < batches * datamodule.batch_size:  # epochs again as needed (a small training set has few batches)
         before = pairs
-        for _, batch in zip(range(batches - pairs // datamodule.batch_size), datamodule.train_dataloader()):
+        for _, batch in zip(range(batches - pairs // datamodule.batch_size), loader):
             pairs += batch["points_src"].shape[0]
         if pairs == before:
             raise ConfigError("the train loader gives no batch (a training set smaller than data.batch_size)")
-    wall = time.perf_counter() - wall
-    return LoaderRate(pairs, wall, time.process_time() - cpu + _children_cpu_s() - children, workers)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    if workers:
+        del loader, datamodule  # the persistent workers exit: their CPU time is counted once they are reaped
+        gc.collect()
+    return LoaderRate(pairs, wall, cpu + _children_cpu_s() - children, workers)
 
 
 def describe(rate: LoaderRate) -> str:
