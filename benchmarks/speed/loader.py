@@ -66,16 +66,15 @@ def measure(overrides: list[str], batches: int, workers: int = 0) -> LoaderRate:
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.setup("fit")
     loader = datamodule.train_dataloader()
+    if len(loader) == 0:
+        raise ConfigError("the train loader gives no batch (a training set smaller than data.batch_size)")
     if workers == 0:
         next(iter(loader))  # lazy imports and caches, untimed
     children, cpu, wall = _children_cpu_s(), time.process_time(), time.perf_counter()
     pairs = 0
     while pairs < batches * datamodule.batch_size:  # epochs again as needed (a small training set has few batches)
-        before = pairs
         for _, batch in zip(range(batches - pairs // datamodule.batch_size), loader):
             pairs += batch["points_src"].shape[0]
-        if pairs == before:
-            raise ConfigError("the train loader gives no batch (a training set smaller than data.batch_size)")
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     if workers:
         del loader, datamodule  # the persistent workers exit: their CPU time is counted once they are reaped
