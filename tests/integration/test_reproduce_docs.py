@@ -81,7 +81,11 @@ def test_every_training_command_is_the_papers_recipe_on_the_gpu_one_run_per_fold
                 cfg.model.scheduler.gamma) == (260_000, 64, 1e-4, [220_000], 0.1)
         assert (cfg.trainer.accelerator, cfg.trainer.precision, cfg.model_scale, cfg.data.dataset) == \
             ("gpu", "32-true", 1.0, "modelnet40")
-    assert len(runs) == 6 and all(d.startswith("outputs/reproduce/") for d in runs)
+    assert all(d.startswith("outputs/reproduce/") for d in runs)
+    trained = {(o[0], dict(x.split("=") for x in o[1:]).get("sampling"), dict(x.split("=") for x in o[1:]).get("partial", "prnet"))
+               for o in runs.values()}
+    assert trained == {(f"+exp={e}", s, p) for e in ("unseen_shapes", "gaussian_noise") for s in ("ts", "os")
+                       for p in ("prnet", "rpmnet")} | {("+exp=unseen_categories", "ts", "prnet")}  # eight, and (b) again
 
     submitted = []
     monkeypatch.setattr(chain_cli, "submit", lambda *args: submitted.append(args))
@@ -92,15 +96,19 @@ def test_every_training_command_is_the_papers_recipe_on_the_gpu_one_run_per_fold
     assert (chain.minutes, options, cluster, requeues) == (240, {"slurm_partition": "gpu", "mem_gb": 64}, "slurm", 100)
 
 
-def test_table_1b_needs_no_training_of_its_own():
-    """The page says +exp=unseen_categories trains what +exp=unseen_shapes trains: only the test set differs."""
+@pytest.mark.parametrize(("trained", "tested"), [
+    (["+exp=unseen_shapes"], ["+exp=unseen_categories"]),
+    (["+exp=gaussian_noise", "partial=rpmnet"], ["+exp=unseen_categories", "partial=rpmnet", "data.pair.noise_sigma=0.01"]),
+])
+def test_the_unseen_categories_rows_need_no_training_of_their_own(trained, tested):
+    """The page tests the first-half models on the other categories: the two configs train alike, only the test
+    set (and the task's name) differ."""
     from omegaconf import OmegaConf
 
-    shapes, categories = (OmegaConf.to_container(compose_experiment([f"+exp={e}", "output_dir=unused"]), resolve=True)
-                          for e in ("unseen_shapes", "unseen_categories"))
-    assert (shapes.pop("task_name"), categories.pop("task_name")) == ("unseen_shapes", "unseen_categories")
-    assert shapes["data"]["splits"].pop("test") != categories["data"]["splits"].pop("test")
-    assert shapes == categories
+    configs = [OmegaConf.to_container(compose_experiment([*o, "output_dir=unused"]), resolve=True) for o in (trained, tested)]
+    assert configs[0].pop("task_name") != configs[1].pop("task_name")
+    assert configs[0]["data"]["splits"].pop("test") != configs[1]["data"]["splits"].pop("test")
+    assert configs[0] == configs[1]
 
 
 def test_the_download_command_is_the_one_docs_data_gives():
