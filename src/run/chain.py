@@ -196,6 +196,7 @@ def submit(chain: Chain, options: dict[str, Any], cluster: str, requeues: int) -
 
     if chain.minutes is None:
         raise ConfigError("--submit needs --minutes (the job's time limit)")
+    chain = replace(chain, run_dir=chain.run_dir.resolve())  # the job may start in another folder
     executor = submitit.AutoExecutor(folder=chain.run_dir / ".submitit", cluster=cluster,
                                      **{f"{name}_max_num_timeout": requeues for name in ("slurm", "local")})
     executor.update_parameters(**{**SUBMIT_DEFAULTS, "timeout_min": math.ceil(chain.minutes), **options})

@@ -13,7 +13,7 @@ import time
 import pytest
 import torch
 
-from src.run.chain import RESUMABLE, Chain, main
+from src.run.chain import RESUMABLE, Chain, main, submit
 from src.utils.errors import ConfigError
 from tests.helpers.paths import ROOT
 
@@ -72,6 +72,21 @@ def test_a_folder_of_other_overrides_and_the_chains_own_keys_are_refused(tmp_pat
             _chain(run, override)
     assert main([str(run), "--minutes", "0", "--", "steps=1"]) == 2
     assert capsys.readouterr().err.strip() == "error: --minutes must be a positive number, got 0.0"
+    other = str(tmp_path / "other")
+    assert main([other, "--submit", "--", "steps=1"]) == 2
+    assert capsys.readouterr().err.strip() == "error: --submit needs --minutes (the job's time limit)"
+    assert main([other, "--submit", "--minutes", "5", "--slurm", "slurm_partition", "--", "steps=1"]) == 2
+    assert "--slurm slurm_partition: expected KEY=VALUE" in capsys.readouterr().err
+
+
+def test_a_submitted_chain_runs_as_a_job_and_records_its_call(tmp_path):
+    """submitit's local executor (a process, as a SLURM job would be): the chain is pickled, run, recorded."""
+    run = tmp_path / "run"
+    job = submit(Chain(run, ["steps=5", "step_s=0.01"], 5.0, FAKE), {}, "local", 2)
+    assert job.result() == 0
+    record = json.loads((run / "chain.json").read_text())
+    assert record["done"] and [c["to_step"] for c in record["calls"]] == [5]
+    assert (run / ".submitit").is_dir()
 
 
 def test_submitits_checkpoint_stops_the_training_at_a_step_and_requeues_the_same_chain(tmp_path):
