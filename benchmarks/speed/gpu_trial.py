@@ -88,26 +88,12 @@ def time_training_steps(plan: Plan, out: Path) -> pd.DataFrame:
 
 
 def loader_pairs_per_second(plan: Plan, batches: int) -> float:
-    """Training pairs per second of the experiment's train loader, one worker per CPU core."""
-    import hydra
-    from hydra import compose, initialize_config_dir
+    """Training pairs per second of the experiment's train loader, one worker per CPU core
+    (:func:`benchmarks.speed.loader.measure`)."""
+    from benchmarks.speed.loader import measure
 
-    from src.config import register_resolvers
-    from src.utils.paths import REPO_ROOT
-
-    register_resolvers()
     workers = 0 if plan.device == "cpu" else (os.cpu_count() or 1)
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[*plan.data, f"data.num_workers={workers}", "output_dir=unused",
-                                           *(["data.batch_size=4"] if plan.device == "cpu" else [])])
-    datamodule = hydra.utils.instantiate(cfg.data)
-    datamodule.setup("fit")
-    loader = iter(datamodule.train_dataloader())
-    next(loader)  # workers started
-    start, pairs = time.perf_counter(), 0
-    for _, batch in zip(range(batches), loader):
-        pairs += batch["points_src"].shape[0]
-    return pairs / (time.perf_counter() - start)
+    return measure([*plan.data, *(["data.batch_size=4"] if plan.device == "cpu" else [])], batches, workers).pairs_per_s
 
 
 def train(plan: Plan, run_dir: Path, seconds: float) -> int:
