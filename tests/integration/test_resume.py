@@ -142,12 +142,12 @@ def test_a_signal_saves_the_current_step_and_its_printed_command_resumes_in_plac
     assert_same_weights(last_weights(run), expected, at_stop)
     assert not (run / "failure.json").exists()  # the finished run removed the stale record
     assert sorted(p.name for p in last.parent.glob("last*")) == ["last.ckpt"]  # overwritten, no last-v1.ckpt
-    # one best checkpoint over both sessions, the best validation score of both: the tracking was kept
+    # one best checkpoint over both runs, the best validation score of both: the tracking was kept
     logs = read_csv_logs(run)
     best = _best_tracking(last)
     assert best["best_model_score"].item() == pytest.approx(logs["val/score"].min())
     assert [p.name for p in last.parent.glob("best-*.ckpt")] == [Path(best["best_model_path"]).name]
-    assert len(list((run / "csv").glob("version_*"))) == 2  # both sessions in the same run dir
+    assert len(list((run / "csv").glob("version_*"))) == 2  # both runs in the same run dir
 
 
 def test_an_interrupted_multirun_resumes_every_job_in_its_folder_with_the_printed_command(uninterrupted):
