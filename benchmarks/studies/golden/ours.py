@@ -14,8 +14,7 @@ import torch
 from baselines import get_registrator
 from benchmarks.studies.golden.library import one_thread
 
-#: golden method → (method key, registrator options); PointNetLK-Revisited's published weights have no golden file
-#: yet (their float32 spread is measured: :mod:`benchmarks.studies.golden.spread`).
+#: golden method → (method key, registrator options).
 METHODS: dict[str, tuple[str, dict[str, str]]] = {
     "learning3d_pointnetlk": ("pointnetlk", {"weights": "official:learning3d_pointnetlk"}),
     "pointnetlk_revisited": ("pointnetlk_revisited", {"weights": "official:pointnetlk_revisited"}),

@@ -82,6 +82,14 @@ def summarise(runs: dict[str, np.ndarray], golden: np.ndarray | None) -> dict:
     return result
 
 
+def conditions() -> str:
+    """The torch build and the CPU capability the runs had (what bounds the paths they could reach)."""
+    import torch
+
+    return (f"torch {torch.__version__}, ATen CPU capability {torch.backends.cpu.get_cpu_capability()}: the paths of "
+            "a higher capability (AVX-512) are not reached, so the spread is a lower bound of the spread across CPUs.")
+
+
 def report(results: dict[tuple[str, str], dict], pairs: int, command: str) -> str:
     """The Markdown report of :func:`measure`'s results."""
     lines = ["# float32 spread across math-library instruction paths", "",
@@ -89,14 +97,16 @@ def report(results: dict[tuple[str, str], dict], pairs: int, command: str) -> st
              "airplanes, PRNet manner, OS and TS, 768 points; `benchmarks/studies/golden/pairs.py`) when only the "
              "environment of the math libraries changes. Spread per pair: the largest difference between any two "
              "settings. float32 vs float64 golden: per pair the largest distance of any setting's float32 estimate from "
-             "the authors' float64 one (`tests/fixtures/golden/`).", "", "    " + command, "",
+             "the authors' float64 one (`tests/fixtures/golden/`).", "", conditions(), "", "    " + command, "",
              "| method | code | spread median [deg] | spread max [deg] | float32 vs float64 golden, median / max [deg] |",
              "|---|---|---|---|---|"]
     for (method, impl), r in results.items():
         golden = f"{r['golden_median']:.2e} / {r['golden_max']:.2e}" if "golden_median" in r else "no golden file"
         lines.append(f"| {method} | {impl} | {r['median']:.2e} | {r['max']:.2e} | {golden} |")
     settings = list(SETTINGS)[1:]
-    lines += ["", f"Largest difference from `{list(SETTINGS)[0]}` per setting [deg] (0: the same bits):", "",
+    lines += ["", f"Largest difference from `{list(SETTINGS)[0]}` per setting [deg]. Runs of the same settings in two "
+              "processes can differ too (MKL is not bit-reproducible between processes unless `MKL_CBWR` is "
+              "set): columns equal to each other in a row are such runs, not a knob's effect:", "",
               "| method | code | " + " | ".join(f"`{s}`" for s in settings) + " |", "|---|---|" + "---|" * len(settings)]
     for (method, impl), r in results.items():
         lines.append(f"| {method} | {impl} | " + " | ".join(f"{r['per_setting'][s]:.2e}" for s in settings) + " |")
