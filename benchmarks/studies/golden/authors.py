@@ -118,7 +118,12 @@ def idam(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np
     model.py:139-140); everything before the head is theirs."""
     import contextlib
 
-    from benchmarks.idam_lockstep import IDAMPair, _procrustes_head, copy_weights, load_authors
+    from benchmarks.idam_lockstep import (
+        IDAMPair,
+        _procrustes_head,
+        copy_weights,
+        load_authors,
+    )
     from benchmarks.lockstep import float64_mode
 
     ours, settings = shipped_network("idam", dtype)

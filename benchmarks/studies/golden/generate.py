@@ -26,7 +26,7 @@ from src.errors import ConfigError, exit_code_of
 
 def commit_of(checkout: Path) -> str:
     """The checkout's commit (``git rev-parse HEAD``), or ``unknown`` where it is not a git clone."""
-    result = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True)
+    result = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True, check=False)
     return result.stdout.strip() if result.returncode == 0 else "unknown"
 
 

@@ -24,7 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.studies.golden.golden_file import golden_path, read_golden, rotation_difference_deg
+from benchmarks.studies.golden.golden_file import (
+    golden_path,
+    read_golden,
+    rotation_difference_deg,
+)
 from benchmarks.studies.golden.pairs import PAIRS_PER_SAMPLING, SAMPLINGS
 from src.errors import ConfigError, exit_code_of
 
@@ -93,20 +97,20 @@ def conditions() -> str:
 def report(results: dict[tuple[str, str], dict], pairs: int, command: str) -> str:
     """The Markdown report of :func:`measure`'s results."""
     lines = ["# float32 spread across math-library instruction paths", "",
-             f"Rotation difference (degrees) between float32 estimates of the same {pairs} golden pairs (real "
-             "airplanes, PRNet manner, OS and TS, 768 points; `benchmarks/studies/golden/pairs.py`) when only the "
-             "environment of the math libraries changes. Spread per pair: the largest difference between any two "
-             "settings. float32 vs float64 golden: per pair the largest distance of any setting's float32 estimate from "
-             "the authors' float64 one (`tests/fixtures/golden/`).", "", conditions(), "", "    " + command, "",
+             (f"Rotation difference (degrees) between float32 estimates of the same {pairs} golden pairs (real "
+              "airplanes, PRNet manner, OS and TS, 768 points; `benchmarks/studies/golden/pairs.py`) when only the "
+              "environment of the math libraries changes. Spread per pair: the largest difference between any two "
+              "settings. float32 vs float64 golden: per pair the largest distance of any setting's float32 estimate "
+              "from the authors' float64 one (`tests/fixtures/golden/`)."), "", conditions(), "", "    " + command, "",
              "| method | code | spread median [deg] | spread max [deg] | float32 vs float64 golden, median / max [deg] |",
              "|---|---|---|---|---|"]
     for (method, impl), r in results.items():
         golden = f"{r['golden_median']:.2e} / {r['golden_max']:.2e}" if "golden_median" in r else "no golden file"
         lines.append(f"| {method} | {impl} | {r['median']:.2e} | {r['max']:.2e} | {golden} |")
     settings = list(SETTINGS)[1:]
-    lines += ["", f"Largest difference from `{list(SETTINGS)[0]}` per setting [deg]. Runs of the same settings in two "
-              "processes can differ too (MKL is not bit-reproducible between processes unless `MKL_CBWR` is "
-              "set): columns equal to each other in a row are such runs, not a knob's effect:", "",
+    lines += ["", (f"Largest difference from `{next(iter(SETTINGS))}` per setting [deg]. Runs of the same settings in "
+                   "two processes can differ too (MKL is not bit-reproducible between processes unless `MKL_CBWR` is "
+                   "set): columns equal to each other in a row are such runs, not a knob's effect:"), "",
               "| method | code | " + " | ".join(f"`{s}`" for s in settings) + " |", "|---|---|" + "---|" * len(settings)]
     for (method, impl), r in results.items():
         lines.append(f"| {method} | {impl} | " + " | ".join(f"{r['per_setting'][s]:.2e}" for s in settings) + " |")

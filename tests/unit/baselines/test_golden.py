@@ -24,7 +24,12 @@ from benchmarks.studies.golden.golden_file import (
     weights_file,
     weights_sha256,
 )
-from benchmarks.studies.golden.pairs import ZIP, golden_pairs, pairs_digest, prepare_cache
+from benchmarks.studies.golden.pairs import (
+    ZIP,
+    golden_pairs,
+    pairs_digest,
+    prepare_cache,
+)
 
 FLOAT64_DEGREES = 1e-6
 FLOAT64_TRANSLATION = 1e-6
