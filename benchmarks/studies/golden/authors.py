@@ -226,9 +226,10 @@ class Reference:
 
 def _library(method: str) -> Reference:
     """A classical method's reference: its library call (:mod:`benchmarks.studies.golden.library`), float64."""
-    from benchmarks.studies.golden.library import run
+    from benchmarks.studies.golden.library import LIBRARIES, run
 
-    return Reference("isl-org/Open3D", "", lambda checkout, pairs, dtype: run(method, pairs), library=True)
+    repo = "koide3/small_gicp" if method in LIBRARIES else "isl-org/Open3D"
+    return Reference(repo, "", lambda checkout, pairs, dtype: run(method, pairs), library=True)
 
 
 REFERENCES: dict[str, Reference] = {
@@ -237,5 +238,5 @@ REFERENCES: dict[str, Reference] = {
     "idam": Reference("jiahaowork/idam", "idam_real_airplane_ts_prnet", idam),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
-    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr")},
+    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},
 }

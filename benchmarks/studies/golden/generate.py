@@ -42,7 +42,7 @@ def generate(method: str, checkout: Path | None) -> Path:
     if reference.library:
         from benchmarks.studies.golden.library import library_version
 
-        authors, command_tail = library_version(), ""
+        authors, command_tail = library_version(method), ""
     else:
         authors, command_tail = f"{reference.repo}@{commit_of(checkout)}", f" --authors <checkout of {reference.repo}>"
     return write_golden(

@@ -1,7 +1,8 @@
 """The classical methods' library calls on the golden pairs, written here from the libraries' documented APIs
 with the settings each wrapper's docstring gives (``baselines/classical/``): ``(pairs) -> (P, 4, 4)``.
 
-Every call is Open3D's own, in float64, started from the identity; nothing of the wrappers runs here. Normals,
+Every call is the library's own (Open3D's; small_gicp's), in float64, started from the identity; nothing of the
+wrappers runs here. Normals,
 where a method uses them, are Open3D's PCA normals over a hybrid neighbourhood (radius 0.1, at most 30
 neighbours), flipped to point away from the cloud's centroid (the wrappers' documented ``centroid`` orientation).
 Open3D runs on one thread (:func:`one_thread`): with more, its point-to-plane ICP is not reproducible from run
@@ -33,8 +34,11 @@ def one_thread() -> None:
     _o3d().utility.set_max_threads(1)
 
 
-def library_version() -> str:
-    return f"open3d {_o3d().__version__}"
+def library_version(method: str) -> str:
+    """The library (and version) of ``method``'s call."""
+    from importlib.metadata import version
+
+    return f"small_gicp {version('small_gicp')}" if method in LIBRARIES else f"open3d {_o3d().__version__}"
 
 
 def _cloud(points: np.ndarray, normals: bool = False):
@@ -85,8 +89,20 @@ def fgr(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return reg.registration_fgr_based_on_feature_matching(*clouds, *features, option).transformation
 
 
+def small_gicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """small_gicp's GICP with the wrapper's documented defaults (``baselines/classical/smallgicp.py``):
+    down-sampling 0.01, 20 neighbours, correspondence distance 1.0, 30 iterations, one thread."""
+    import small_gicp as sg
+
+    (ref_pc, ref_tree), (src_pc, _) = (sg.preprocess_points(c.astype(np.float64), 0.01, 20, num_threads=1) for c in (ref, src))
+    return sg.align(ref_pc, src_pc, ref_tree, registration_type="GICP", max_correspondence_distance=1.0,
+                    max_iterations=30, num_threads=1).T_target_source
+
+
 CALLS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
-    "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr}
+    "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr, "small_gicp": small_gicp}
+#: The library each call needs, beside Open3D (an optional package of the framework).
+LIBRARIES = {"small_gicp": "small_gicp"}
 
 
 def run(method: str, pairs: dict[str, np.ndarray]) -> np.ndarray:
