@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from baselines.result import check_threshold, inlier_fit
-from benchmarks import tables
+from benchmarks.tables import render as tables
 from src.data.datamodule import RegistrationDataModule
 from src.data.point_files import read_points
 from src.data.prepare import prepare

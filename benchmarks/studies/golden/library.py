@@ -1,0 +1,111 @@
+"""The classical methods' library calls on the golden pairs, written here from the libraries' documented APIs
+with the settings each wrapper's docstring gives (``baselines/classical/``): ``(pairs) -> (P, 4, 4)``.
+
+Every call is the library's own (Open3D's; small_gicp's), in float64, started from the identity; nothing of the
+wrappers runs here. Normals,
+where a method uses them, are Open3D's PCA normals over a hybrid neighbourhood (radius 0.1, at most 30
+neighbours), flipped to point away from the cloud's centroid (the wrappers' documented ``centroid`` orientation).
+Open3D runs on one thread (:func:`one_thread`): with more, its point-to-plane ICP is not reproducible from run
+to run on some pairs (its reductions are summed in the threads' order; see the study's README).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+#: ICP's documented defaults (``baselines/classical/icp.py``): correspondence distance 0.5, 30 iterations,
+#: relative fitness / RMSE 1e-6.
+ICP_DISTANCE, ICP_ITERATIONS, ICP_RELATIVE = 0.5, 30, 1e-6
+GICP_DISTANCE, GICP_EPSILON = 1.0, 1e-3  # baselines/classical/open3d_icp.py
+NORMAL_RADIUS, NORMAL_MAX_NN, FEATURE_RADIUS, FEATURE_MAX_NN = 0.1, 30, 0.25, 100  # baselines/classical/fgr.py
+SEED = 0  # Open3D's sampler, seeded before the features of a pair (FGR's tuples)
+
+
+def _o3d():
+    import open3d
+
+    return open3d
+
+
+def one_thread() -> None:
+    """Open3D's parallel loops on one thread (a process-wide setting), so that its results are reproducible."""
+    _o3d().utility.set_max_threads(1)
+
+
+def library_version(method: str) -> str:
+    """The library (and version) of ``method``'s call."""
+    from importlib.metadata import version
+
+    return f"small_gicp {version('small_gicp')}" if method in LIBRARIES else f"open3d {_o3d().__version__}"
+
+
+def _cloud(points: np.ndarray, normals: bool = False):
+    o3d = _o3d()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    if normals:
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
+        raw = np.asarray(pcd.normals)
+        away = np.sign(np.einsum("ij,ij->i", raw, points - points.mean(axis=0)))
+        pcd.normals = o3d.utility.Vector3dVector(raw * np.where(away == 0, -1.0, away)[:, None])
+    return pcd
+
+
+def _criteria():
+    return _o3d().pipelines.registration.ICPConvergenceCriteria(
+        relative_fitness=ICP_RELATIVE, relative_rmse=ICP_RELATIVE, max_iteration=ICP_ITERATIONS)
+
+
+def icp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    reg = _o3d().pipelines.registration
+    return reg.registration_icp(_cloud(src), _cloud(ref), ICP_DISTANCE, np.eye(4),
+                                reg.TransformationEstimationPointToPoint(False), _criteria()).transformation
+
+
+def point_to_plane_icp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    reg = _o3d().pipelines.registration
+    return reg.registration_icp(_cloud(src), _cloud(ref, normals=True), ICP_DISTANCE, np.eye(4),
+                                reg.TransformationEstimationPointToPlane(), _criteria()).transformation
+
+
+def gicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    reg = _o3d().pipelines.registration
+    return reg.registration_generalized_icp(
+        _cloud(src, normals=True), _cloud(ref, normals=True), GICP_DISTANCE, np.eye(4),
+        reg.TransformationEstimationForGeneralizedICP(GICP_EPSILON), _criteria()).transformation
+
+
+def fgr(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(SEED)
+    clouds = [_cloud(points, normals=True) for points in (src, ref)]
+    features = [reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=FEATURE_MAX_NN))
+                for c in clouds]
+    option = reg.FastGlobalRegistrationOption(  # Open3D's defaults, named (fgr.py)
+        division_factor=1.4, use_absolute_scale=False, decrease_mu=True, maximum_correspondence_distance=0.025,
+        iteration_number=64, tuple_scale=0.95, maximum_tuple_count=1000)
+    return reg.registration_fgr_based_on_feature_matching(*clouds, *features, option).transformation
+
+
+def small_gicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """small_gicp's GICP with the wrapper's documented defaults (``baselines/classical/smallgicp.py``):
+    down-sampling 0.01, 20 neighbours, correspondence distance 1.0, 30 iterations, one thread."""
+    import small_gicp as sg
+
+    (ref_pc, ref_tree), (src_pc, _) = (sg.preprocess_points(c.astype(np.float64), 0.01, 20, num_threads=1) for c in (ref, src))
+    return sg.align(ref_pc, src_pc, ref_tree, registration_type="GICP", max_correspondence_distance=1.0,
+                    max_iterations=30, num_threads=1).T_target_source
+
+
+CALLS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr, "small_gicp": small_gicp}
+#: The library each call needs, beside Open3D (an optional package of the framework).
+LIBRARIES = {"small_gicp": "small_gicp"}
+
+
+def run(method: str, pairs: dict[str, np.ndarray]) -> np.ndarray:
+    """(P, 4, 4) estimates of the library call of ``method`` on every pair (Open3D on one thread)."""
+    one_thread()
+    return np.stack([np.asarray(CALLS[method](s, r), dtype=np.float64) for s, r in zip(pairs["src"], pairs["ref"])])

@@ -1,0 +1,46 @@
+"""The framework on the golden pairs: each golden method's registrator, ``(pairs, dtype) -> (P, 4, 4)``.
+
+A learned method in float32 takes the product's own path (:meth:`Registrator.register_batch`); in float64 the
+registrator's loaded network runs in double precision (the same weights and code, another dtype). A classical
+method registers pair by pair (:meth:`Registrator.register`, float64 whatever ``dtype``), Open3D on one thread
+(:func:`benchmarks.studies.golden.library.one_thread`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from baselines import get_registrator
+from benchmarks.studies.golden.library import one_thread
+
+#: golden method → (method key, registrator options).
+METHODS: dict[str, tuple[str, dict[str, str]]] = {
+    "learning3d_pointnetlk": ("pointnetlk", {"weights": "official:learning3d_pointnetlk"}),
+    "pointnetlk_revisited": ("pointnetlk_revisited", {"weights": "official:pointnetlk_revisited"}),
+    "dcp_v1": ("dcp", {"weights": "official:dcp_v1"}),
+    "omnet": ("omnet", {}),  # the shipped checkpoints
+    "idam": ("idam", {}),
+    **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
+}
+BATCH = 8
+
+
+def estimates(method: str, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """The framework's (P, 4, 4) float64 estimates of golden ``method`` on ``pairs`` in ``dtype``."""
+    key, options = METHODS[method]
+    registrator = get_registrator(key, **options)
+    if registrator.needs_training is False:  # a classical method: float64 throughout, one pair at a time
+        one_thread()
+        return np.stack([registrator.register(src, ref) for src, ref in zip(pairs["src"], pairs["ref"])])
+    registrator = get_registrator(key, device="cpu", batch_size=BATCH, **options)
+    if dtype == torch.float32:
+        return np.concatenate([registrator.register_batch(pairs["src"][i:i + BATCH], pairs["ref"][i:i + BATCH])
+                               for i in range(0, len(pairs["src"]), BATCH)])
+    module = registrator.module.to(dtype)
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(pairs["src"]), BATCH):
+            src, ref = (torch.from_numpy(pairs[k][i:i + BATCH]).to(dtype) for k in ("src", "ref"))
+            out.append(module(src, ref).double().numpy())
+    return np.concatenate(out)

@@ -1,0 +1,61 @@
+"""The golden-file study's helpers (benchmarks/studies/golden): the rotation difference, golden files' round
+trip, the spread's summary and report, and its one-line errors."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from benchmarks.studies.golden import golden_file, spread
+from benchmarks.studies.golden.generate import main as generate_main
+from src.utils.errors import ConfigError
+
+
+def _transforms(degrees: list[float], axis: str = "z") -> np.ndarray:
+    out = np.tile(np.eye(4), (len(degrees), 1, 1))
+    out[:, :3, :3] = Rotation.from_euler(axis, np.asarray(degrees)[:, None], degrees=True).as_matrix()
+    return out
+
+
+def test_rotation_difference_keeps_tiny_and_large_angles():
+    a = _transforms([0.0, 10.0, 0.0, 0.0])
+    b = _transforms([1e-9, 10.0 + 3e-7, 90.0, 179.0])
+    np.testing.assert_allclose(golden_file.rotation_difference_deg(a, b), [1e-9, 3e-7, 90.0, 179.0], rtol=1e-5)
+    b[:, :3, 3] = [[3.0, 4.0, 0.0]] * 4
+    np.testing.assert_allclose(golden_file.translation_difference(a, b), 5.0)
+
+
+def test_golden_files_round_trip_and_refuse_missing_fields(tmp_path, monkeypatch):
+    monkeypatch.setattr(golden_file, "GOLDEN_DIR", tmp_path)
+    fields = {"dtype": "float64", "authors": "a/b@1", "weights": "", "weights_sha256": "", "pairs_sha256": "x",
+              "command": "python -m benchmarks.studies.golden.generate m"}
+    golden_file.write_golden("m", _transforms([1.0, 2.0]), **fields)
+    read = golden_file.read_golden("m")
+    np.testing.assert_array_equal(read.pop("transforms"), _transforms([1.0, 2.0]))
+    assert read == {"method": "m", **fields}
+    with pytest.raises(ValueError, match="command"):
+        golden_file.write_golden("m", _transforms([1.0]), **{k: v for k, v in fields.items() if k != "command"})
+
+
+def test_the_spread_is_the_largest_difference_between_any_two_settings():
+    runs = {"a": _transforms([0.0, 0.0]), "b": _transforms([0.1, 0.0]), "c": _transforms([-0.2, 0.05])}
+    summary = spread.summarise(runs, golden=_transforms([0.0, 1.0]))
+    assert summary["median"] == pytest.approx(np.median([0.3, 0.05])) and summary["max"] == pytest.approx(0.3)
+    assert summary["per_setting"] == pytest.approx({"b": 0.1, "c": 0.2})
+    assert summary["golden_max"] == pytest.approx(1.0) and summary["golden_median"] == pytest.approx((0.2 + 1.0) / 2)
+    assert "golden_max" not in spread.summarise(runs, golden=None)
+
+
+def test_the_report_has_a_row_per_method_and_code_and_a_column_per_setting():
+    runs = {s: _transforms([0.0]) for s in spread.SETTINGS}
+    results = {("m", "ours"): spread.summarise(runs, None), ("m", "authors"): spread.summarise(runs, _transforms([1.0]))}
+    text = spread.report(results, 1, "python -m benchmarks.studies.golden.spread --methods m")
+    assert "| m | ours | 0.00e+00 | 0.00e+00 | no golden file |" in text
+    assert "| m | authors | 0.00e+00 | 0.00e+00 | 1.00e+00 / 1.00e+00 |" in text
+    assert all(f"`{s}`" in text for s in list(spread.SETTINGS)[1:])
+
+
+def test_bad_arguments_are_one_line_errors(capsys):
+    with pytest.raises(ConfigError, match="METHOD=CHECKOUT"):
+        spread._checkouts(["dcp_v1"])
+    assert generate_main(["dcp_v1"]) == 2
+    assert capsys.readouterr().err.strip() == "error: dcp_v1: --authors CHECKOUT (a clone of WangYueFt/dcp) is needed"
