@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
 
 from src.utils.errors import ConfigError
@@ -15,6 +18,19 @@ def open3d():
     import open3d as o3d
 
     return o3d
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Open3D on one thread within the block (its previous limit restored after): a call whose parallel reductions
+    make its result depend on the threads' order gives the same result on every run."""
+    utility = open3d().utility
+    previous = utility.get_max_threads()
+    utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        utility.set_max_threads(previous)
 
 
 def to_pcd(points: np.ndarray):

@@ -6,7 +6,8 @@ every measure).
 
 Normals (point-to-plane: the reference's are the plane normals) are estimated with Open3D on the clouds as
 received, exactly as for FGR (hybrid radius 0.1, at most 30 neighbours, signed away from the centroid; their
-sign does not matter here). GICP's covariances are Open3D's plane-to-plane ones built from those normals
+sign does not matter here). Point-to-plane ICP runs Open3D on one thread: with several, its result depended on
+the threads' order on a pair near a tie (``benchmarks/studies/golden/README.md``). GICP's covariances are Open3D's plane-to-plane ones built from those normals
 (``R diag(ε, 1, 1) Rᵀ``, the paper's), ``epsilon = 1e-3`` (Open3D's and the paper's). Raw covariances
 estimated by Open3D (``estimate_covariances``) are used unregularised and gave NaN poses on 300-point clouds.
 """
@@ -19,7 +20,7 @@ import numpy as np
 
 from baselines.base import _positive
 from baselines.classical._features import NormalsConfig
-from baselines.classical._open3d import open3d, to_pcd
+from baselines.classical._open3d import one_thread, open3d, to_pcd
 from baselines.classical.icp import ICP, ICPConfig
 
 
@@ -54,8 +55,9 @@ class PointToPlaneICP(ICP):
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         reg = open3d().pipelines.registration
         cfg: PointToPlaneICPConfig = self.config
-        result = reg.registration_icp(to_pcd(src), cfg.cloud_with_normals(ref), float(cfg.max_correspondence_distance),
-                                      np.eye(4), reg.TransformationEstimationPointToPlane(), cfg.criteria())
+        with one_thread():  # with several, a pair near a tie ended 72-130 deg apart in 6 of 200 runs (golden study)
+            result = reg.registration_icp(to_pcd(src), cfg.cloud_with_normals(ref), float(cfg.max_correspondence_distance),
+                                          np.eye(4), reg.TransformationEstimationPointToPlane(), cfg.criteria())
         return np.asarray(result.transformation, dtype=np.float64)
 
 
