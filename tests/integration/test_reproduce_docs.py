@@ -107,6 +107,7 @@ def test_the_unseen_categories_rows_need_no_training_of_their_own(trained, teste
 
     configs = [OmegaConf.to_container(compose_experiment([*o, "output_dir=unused"]), resolve=True) for o in (trained, tested)]
     assert configs[0].pop("task_name") != configs[1].pop("task_name")
+    assert configs[0]["callbacks"]["trained_on"].pop("task") != configs[1]["callbacks"]["trained_on"].pop("task")
     assert configs[0]["data"]["splits"].pop("test") != configs[1]["data"]["splits"].pop("test")
     assert configs[0] == configs[1]
 

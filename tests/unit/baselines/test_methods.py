@@ -12,7 +12,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-import benchmarks.grid  # noqa: F401 - stores the grid's primary config
+import benchmarks.grid.plan  # noqa: F401 - stores the grid's primary config
 from baselines import get_registrator, resolve_registrator
 from baselines.learned.adapter import LearnedRegistrator
 from baselines.learned.published import PUBLISHED, Published

@@ -240,7 +240,7 @@ def test_protocol_experiments_compose(exp, points, perturbation):
 def test_grid_file_runs_each_model_under_its_protocol_and_omnets():
     import fnmatch
 
-    import benchmarks.grid  # noqa: F401 - registers the grid's primary config
+    import benchmarks.grid.plan  # noqa: F401 - registers the grid's primary config
 
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose("benchmark_grid", overrides=["+benchmark=published_weights"])
