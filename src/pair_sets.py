@@ -32,6 +32,7 @@ class TestSet:
     dataset: Any  # src.data.dataset.PairDataset
     definition: dict[str, Any]
     _pairs: list | None = None
+    _raw: list | None = None
 
     @property
     def key(self) -> str:
@@ -48,9 +49,10 @@ class TestSet:
     def pairs(self, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """The first ``n`` pairs ``(src, ref, transform_gt)``; each cloud is checked (≥ 3 points, finite)."""
         if self._pairs is None:
-            self._pairs = []
+            self._pairs, self._raw = [], []
         for index in range(len(self._pairs), n):
             sample = self.dataset[index]
+            self._raw.append(sample["points_raw"].numpy() if "points_raw" in sample else None)
             src, ref = sample["points_src"].numpy(), sample["points_ref"].numpy()
             try:
                 check_cloud(src, "points_src")
@@ -59,6 +61,13 @@ class TestSet:
                 raise PointCloudError(f"test set {self.key}, pair {index}: {err}") from None
             self._pairs.append((src, ref, sample["transform_gt"].numpy().astype(np.float64)))
         return self._pairs[:n]
+
+    def raw(self, n: int) -> list[np.ndarray] | None:
+        """The reference's clean full cloud of each of the first ``n`` pairs (RPM-Net's modified Chamfer
+        distance reads it), or None where the pairs do not carry it (real scan pairs)."""
+        self.pairs(n)
+        raw = self._raw[:n]
+        return None if any(cloud is None for cloud in raw) else raw
 
 
 def build_test_set(experiment: str, sampling: str, partial: str, data: str | None, extra: Sequence[str]) -> TestSet:

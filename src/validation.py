@@ -138,6 +138,7 @@ RULES: dict[str, Rule] = {
     "data.pair.prnet_num_keep": integer(MIN_POINTS),
     "data.pair.rpmnet_p_keep": FRACTION,
     "data.pair.rpmnet_num_points": integer(MIN_POINTS),
+    "data.pair.rpmnet_resample_points": integer(MIN_POINTS, nullable=True),
     "data.pair.overlap_ratio": number(0.0, 1.0, low_open=True, nullable=True),
     "data.pair.perturbation": Rule(str, choices=PERTURBATIONS),
     "data.pair.twist_mag": NON_NEGATIVE,

@@ -19,30 +19,33 @@ from baselines.methods import display_name
 from benchmarks.grid.plan import Cell, plan
 from src.config import euler_seq_for
 from src.utils.files import write_atomic
-from src.metrics import CHAMFER, ERROR_R, ERROR_T, MAE_R, MAE_T, PAIR_ERRORS
+from src.metrics import CHAMFER, ERROR_R, ERROR_T, MAE_R, MAE_T, MODIFIED_CHAMFER, PAIR_ERRORS
 
 TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
                 "value", "n_pairs", "n_failed", "seconds", "seconds_per_pair", "cell")
 
 
 def cell_metrics(
-    results: Sequence[RegistrationResult], pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], euler_seq: str
+    results: Sequence[RegistrationResult], pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], euler_seq: str,
+    raw: Sequence[np.ndarray] | None = None,
 ) -> tuple[dict[str, float], dict[str, np.ndarray]]:
     """RegistrationMetrics over the cell (failed pairs count with their identity estimate) and the
-    per-pair errors."""
+    per-pair errors; with ``raw`` (each pair's clean full reference) RPM-Net's modified Chamfer distance
+    too (else NaN per pair and no cell value)."""
     import torch
 
     from src.geometry import se3_apply
-    from src.metrics import RegistrationMetrics, chamfer_distance, pair_errors
+    from src.metrics import RegistrationMetrics, chamfer_distance, modified_chamfer, pair_errors
 
     metric = RegistrationMetrics(euler_seq)
     per_pair: dict[str, list[float]] = {name: [] for name in PAIR_ERRORS}
-    for result, (src, ref, gt) in zip(results, pairs):
+    for k, (result, (src, ref, gt)) in enumerate(zip(results, pairs)):
         pred_t = torch.tensor(np.asarray(result.transform), dtype=torch.float64)[None]
         gt_t = torch.as_tensor(gt, dtype=torch.float32)[None]
         src_t = torch.as_tensor(src, dtype=torch.float32)[None]
         ref_t = torch.as_tensor(ref, dtype=torch.float32)[None]
-        metric.update(pred_t, gt_t, src_t, ref_t)
+        raw_t = None if raw is None else torch.as_tensor(raw[k], dtype=torch.float32)[None]
+        metric.update(pred_t, gt_t, src_t, ref_t, raw_t)
         err = pair_errors(pred_t, gt_t, euler_seq)
         per_pair[ERROR_R].append(float(err["rot_deg"][0]))
         per_pair[ERROR_T].append(float(err["trans_norm"][0]))
@@ -50,6 +53,8 @@ def cell_metrics(
         per_pair[MAE_T].append(float(err["trans_err"][0].abs().mean()))
         moved = se3_apply(pred_t.float(), src_t)
         per_pair[CHAMFER].append(float(chamfer_distance(moved, ref_t)[0]))
+        per_pair[MODIFIED_CHAMFER].append(
+            float("nan") if raw_t is None else float(modified_chamfer(pred_t, gt_t, src_t, ref_t, raw_t)[0]))
     return metric.compute(), {k: np.asarray(v) for k, v in per_pair.items()}
 
 
@@ -90,7 +95,7 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
     t = cell.test_set
     pairs = t.pairs(cell.n_pairs)
     euler_seq = euler_seq_for(t.partial)
-    metrics, errors = cell_metrics(results, pairs, euler_seq)
+    metrics, errors = cell_metrics(results, pairs, euler_seq, t.raw(cell.n_pairs))
     frame = pd.DataFrame({
         "method": cell.method,
         "experiment": t.experiment,

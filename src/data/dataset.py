@@ -32,7 +32,8 @@ class PairDataset(Dataset):
 
     With ``normals`` (the split's ``(N, S, P, 3)`` array) every item also holds ``normals_src`` and
     ``normals_ref``, unit, row for row with the points (see :mod:`src.data.transforms`); the points
-    and ground truth are the same as without them.
+    and ground truth are the same as without them. Every item also holds ``points_raw`` when the pipeline
+    keeps it (the reference's clean full cloud, :mod:`src.data.transforms`).
     """
 
     def __init__(
@@ -65,6 +66,8 @@ class PairDataset(Dataset):
         sample = self.transforms(start, rng)
         kinds = ("points",) if self.normals is None else ("points", "normals")
         item = {f"{kind}_{cloud}": sample[f"{kind}_{cloud}"] for kind in kinds for cloud in CLOUDS}
+        if "points_raw" in sample:
+            item["points_raw"] = sample["points_raw"]
         for key, array in item.items():
             try:
                 check_cloud(array, key, allow_degenerate=True)

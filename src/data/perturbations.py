@@ -51,15 +51,16 @@ class TwistPerturbation:
 
 @dataclass
 class UnitCube:
-    """Scale both clouds by 1 / (the reference's longest bounding-box side) and centre them on the
+    """Scale both clouds (and ``points_raw``) by 1 / (the reference's longest bounding-box side) and centre them on the
     reference's mean (PointNetLK-Revisited's ``OnUnitCube``); the ground truth's translation scales too."""
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         ref = sample["points_ref"]
         scale = float(np.max(ref.max(axis=0) - ref.min(axis=0)))
         centre = ref.mean(axis=0) / scale
-        for key in ("points_src", "points_ref"):
-            sample[key] = (sample[key] / scale - centre).astype(np.float32)
+        for key in ("points_src", "points_ref", "points_raw"):
+            if key in sample:
+                sample[key] = (sample[key] / scale - centre).astype(np.float32)
         gt = np.array(sample["transform_gt"], dtype=np.float64)
         gt[:3, 3] = gt[:3, 3] / scale + (gt[:3, :3] - np.eye(3)) @ centre
         sample["transform_gt"] = gt

@@ -33,6 +33,7 @@ def build_pair_transforms(
     prnet_num_keep: int = 768,
     rpmnet_p_keep: float = 0.7,
     rpmnet_num_points: int = 1024,
+    rpmnet_resample_points: int | None = None,
     overlap_ratio: float | None = None,
     perturbation: str = "euler",
     twist_mag: float = 0.8,
@@ -46,8 +47,8 @@ def build_pair_transforms(
     point for both clouds in their own frames → noise → shuffle. RPMNet manner
     (``RandomCrop``, ``RandomTransformSE3_euler``, ``Resampler``): pick pair → independent half-space
     crops (p_keep) → the drawn transform moves the source (ground truth = its inverse) → resample
-    to ⌈p_keep·1024⌉ = 717 → noise → shuffle. ``none`` (full clouds, DCP's protocol): the transform
-    moves the reference, as DCP's ``data.py`` does.
+    to ⌈p_keep·1024⌉ = 717 (or ``rpmnet_resample_points`` each) → noise → shuffle. ``none`` (full
+    clouds, DCP's protocol): the transform moves the reference, as DCP's ``data.py`` does.
 
     The paper's text words the two manners the other way round (supplementary Sec. 2: "transform
     applied to Y giving X" for PRNet's); the code, which produced the published numbers and for whose
@@ -85,7 +86,8 @@ def build_pair_transforms(
         steps: list[Transform] = [pick, move, PRNetCrop(prnet_num_keep), noise, Shuffle()]
     elif partial == "rpmnet":
         move = RandomRigidTransform(rot_mag, trans_mag, apply_to="src")
-        steps = [pick, RPMNetCrop(rpmnet_p_keep), move, Resample(rpmnet_num_points, rpmnet_p_keep), noise, Shuffle()]
+        resample = Resample(rpmnet_num_points, rpmnet_p_keep, rpmnet_resample_points)
+        steps = [pick, RPMNetCrop(rpmnet_p_keep), move, resample, noise, Shuffle()]
     else:
         steps = [pick, RandomRigidTransform(rot_mag, trans_mag, apply_to="ref"), noise, Shuffle()]
     return Compose(steps)

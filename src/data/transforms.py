@@ -6,6 +6,11 @@ any worker count or order. A sample starts as ``{"shape_points": (S, P, 3), ...}
 ``points_src`` (N, 3), ``points_ref`` (M, 3) and ``transform_gt`` (4, 4), the source→reference
 transform (``ref ≈ R @ src + t``).
 
+Every pipeline that starts with :class:`PickPair` also carries ``points_raw``: the reference's clean full
+cloud (before crop, resampling and noise), moved with the reference, so in the reference's final frame;
+RPM-Net's modified Chamfer distance (:func:`src.metrics.modified_chamfer`) reads it. It draws no random
+numbers and nothing crops it, so the pairs are the same with it as without.
+
 Normals are optional: a sample that starts with ``"shape_normals"`` (S, P, 3) ends with unit
 ``normals_src`` (N, 3) and ``normals_ref`` (M, 3), row ``i`` the normal of point ``i``. They are
 rotated with their cloud and cropped, resampled and shuffled with it; noise moves points only (as
@@ -46,6 +51,8 @@ def move_cloud(sample: Sample, cloud: str, transform: np.ndarray) -> None:
     sample[f"points_{cloud}"] = apply_transform(transform, sample[f"points_{cloud}"]).astype(np.float32)
     if f"normals_{cloud}" in sample:
         sample[f"normals_{cloud}"] = (sample[f"normals_{cloud}"] @ transform[:3, :3].T).astype(np.float32)
+    if cloud == "ref" and "points_raw" in sample:
+        sample["points_raw"] = apply_transform(transform, sample["points_raw"]).astype(np.float32)
     if cloud == "src":
         sample["transform_gt"] = sample["transform_gt"] @ inverse_transform(transform)
     else:
@@ -87,7 +94,8 @@ class PickPair:
     ``ts`` (twice-sampled): two different samplings of the CAD model (``independent_samplings``),
     or two disjoint random subsets of its dense points (``disjoint_subsets``, the closest offline
     equivalent for the PointNet++ resampled layout). ``os`` (once-sampled): one sampling for both.
-    The optional ``shape_normals`` are picked with the same rows and made unit length.
+    The optional ``shape_normals`` are picked with the same rows and made unit length; ``points_raw`` is
+    a copy of the reference's points.
     """
 
     sampling: str
@@ -112,6 +120,7 @@ class PickPair:
             sample[f"points_{cloud}"] = np.array(shape[sampling][rows], dtype=np.float32)
             if normals is not None:
                 sample[f"normals_{cloud}"] = _unit(normals[sampling][rows])
+        sample["points_raw"] = sample["points_ref"].copy()
         sample["transform_gt"] = np.eye(4)
         return sample
 
@@ -180,7 +189,10 @@ class PRNetCrop:
 class RPMNetCrop:
     """RPMNet's partial manner: a random half-space through the centroid, shifted to keep ``p_keep``.
 
-    Source and reference are cropped independently (each with its own random direction).
+    Source and reference are cropped independently (each with its own random direction). At ``p_keep``
+    0.5 the plane goes through the centroid unshifted (the points on its positive side, however many),
+    as RPM-Net's ``RandomCrop.crop`` (``src/data_loader/transforms.py``, l. 144-147) and the
+    ModelLoNet test sets of Predator and RegTR do.
     """
 
     p_keep: float = 0.7
@@ -197,21 +209,24 @@ class RPMNetCrop:
             direction = rng.normal(size=3)
             direction /= np.linalg.norm(direction)
             dist = (points - points.mean(axis=0)) @ direction
-            _take(sample, cloud, dist > np.percentile(dist, (1.0 - self.p_keep) * 100))
+            threshold = 0.0 if self.p_keep == 0.5 else np.percentile(dist, (1.0 - self.p_keep) * 100)
+            _take(sample, cloud, dist > threshold)
         return sample
 
 
 @dataclass
 class Resample:
     """Random subset of each cloud: ``num_points`` for an uncropped cloud, ⌈p_keep·num_points⌉ after
-    an RPMNet crop (1024 → 717), with replacement only if a cloud is too small."""
+    an RPMNet crop (1024 → 717), or exactly ``size`` points when given, with replacement only if a
+    cloud is too small."""
 
     num_points: int = 1024
     p_keep: float = 1.0
+    size: int | None = None
 
     @property
     def target(self) -> int:
-        return math.ceil(self.p_keep * self.num_points)
+        return self.size if self.size is not None else math.ceil(self.p_keep * self.num_points)
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
         for cloud in CLOUDS:

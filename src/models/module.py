@@ -227,7 +227,8 @@ class RegistrationModule(L.LightningModule):
         batch_size = batch["points_src"].shape[0]
         self.eval_losses[prefix].update(losses["loss"].detach(), weight=batch_size)
         self.log(f"{prefix}/loss", self.eval_losses[prefix], on_step=False, on_epoch=True, batch_size=batch_size)
-        metrics.update(outputs["transforms"][-1].float(), batch["transform_gt"], batch["points_src"], batch["points_ref"])
+        metrics.update(outputs["transforms"][-1].float(), batch["transform_gt"], batch["points_src"], batch["points_ref"],
+                       batch.get("points_raw"))
         return outputs
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:

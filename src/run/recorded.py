@@ -144,6 +144,7 @@ READ_ONLY_WITH: dict[str, ReadOnlyWith] = {
     "data.pair.prnet_num_keep": _PRNET,
     "data.pair.rpmnet_p_keep": _RPMNET,
     "data.pair.rpmnet_num_points": _RPMNET,
+    "data.pair.rpmnet_resample_points": _RPMNET,
     "data.pair.rot_mag": _EULER,
     "data.pair.trans_mag": _EULER,
     "data.pair.twist_mag": _TWIST,

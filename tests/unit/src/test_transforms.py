@@ -118,6 +118,43 @@ def test_rpmnet_crop_ratio_and_resample_to_717():
     assert out["points_src"].shape == (717, 3) and out["points_ref"].shape == (717, 3)
 
 
+def test_rpmnet_crop_at_half_keeps_the_half_space_through_the_centroid():
+    """At p_keep 0.5 RPM-Net, Predator and RegTR keep dist > 0, not a percentile (RPM-Net transforms.py l. 144-145)."""
+    skewed = np.random.default_rng(3).exponential(size=(1, 2048, 3)).astype(np.float32)  # mean ≠ median
+    sample = PickPair("os", "independent_samplings")({"shape_points": skewed}, np.random.default_rng(3))
+    points = sample["points_src"].copy()
+    cropped = RPMNetCrop(0.5)(dict(sample), np.random.default_rng(4))
+    direction = np.random.default_rng(4).normal(size=3)  # the source's direction: the crop's first draw
+    dist = (points - points.mean(axis=0)) @ (direction / np.linalg.norm(direction))
+    np.testing.assert_array_equal(cropped["points_src"], points[dist > 0])
+    assert abs(cropped["points_src"].shape[0] - 1024) > 10  # not the median's exact half
+
+
+@pytest.mark.parametrize("p_keep", [0.7, 0.5])
+def test_rpmnet_resample_points_fixes_each_cloud_size(p_keep):
+    """Predator and RegTR resample every cropped cloud to 717 points, at 50 % crops too (ModelLoNet)."""
+    pipeline = build_pair_transforms("independent_samplings", sampling="os", partial="rpmnet", rpmnet_p_keep=p_keep,
+                                     rpmnet_resample_points=717)
+    out = pipeline({"shape_points": _shapes()[1]}, np.random.default_rng(5))
+    assert out["points_src"].shape == (717, 3) and out["points_ref"].shape == (717, 3)
+
+
+@pytest.mark.parametrize("partial", ["prnet", "rpmnet", "none"])
+@pytest.mark.parametrize("sampling", ["os", "ts"])
+def test_raw_is_the_clean_full_reference_in_its_frame(partial, sampling):
+    """``points_raw``: every point of the reference's sampling before crop and noise, in the reference's frame."""
+    shapes = _shapes()
+    clean = build_pair_transforms("independent_samplings", sampling=sampling, partial=partial)
+    noisy = build_pair_transforms("independent_samplings", sampling=sampling, partial=partial, noise_sigma=0.01)
+    out = clean({"shape_points": shapes[4]}, np.random.default_rng(6))
+    assert out["points_raw"].shape == (2048, 3)
+    assert _nn_dist(out["points_ref"], out["points_raw"]).max() < 1e-5  # the reference is a part of it
+    if sampling == "os":  # the source is a part of the same cloud, moved by the ground truth
+        assert _nn_dist(_apply(out["transform_gt"], out["points_src"]), out["points_raw"]).max() < 1e-5
+    np.testing.assert_allclose(noisy({"shape_points": shapes[4]}, np.random.default_rng(6))["points_raw"],
+                               out["points_raw"])  # noise leaves it clean
+
+
 def test_rigid_transform_ranges():
     move = RandomRigidTransform(45.0, 0.5)
     rng = np.random.default_rng(6)
@@ -233,7 +270,7 @@ def test_fixed_pairs_without_normals_are_unchanged(case):
     pipeline = build_pair_transforms(pair_sampling, sampling=sampling, partial=partial, noise_sigma=0.01,
                                      overlap_ratio=ratio)
     item = PairDataset(shapes, np.zeros(3), np.arange(3), pipeline, seed=3)[5]
-    assert set(item) == {"points_src", "points_ref", "transform_gt", "label", "idx"}
+    assert set(item) == {"points_src", "points_ref", "points_raw", "transform_gt", "label", "idx"}
     weights = [np.arange(1, len(item[key]) + 1) @ item[key].double().numpy() @ [1.0, 2.0, 3.0]
                for key in ("points_src", "points_ref")]
     fingerprint = (*weights, item["transform_gt"].double().numpy().ravel() @ np.arange(16))
