@@ -1,4 +1,4 @@
-"""benchmarks.tables.render.literature: the partial-ModelNet literature's table from a grid's tidy rows and the published values."""
+"""benchmarks.tables.literature: the partial-ModelNet literature's table from a grid's tidy rows and the published values."""
 
 import math
 
