@@ -1,6 +1,6 @@
 """The partial-ModelNet literature's table (Predator, RegTR and the papers after them): one row per method,
 a ModelNet and a ModelLoNet column group of RRE (°), RTE and CD (RPM-Net's modified Chamfer distance), our
-grid's values and, below them, the published values (``benchmarks/published/modelnet.csv``), marked as such.
+grid's values and, below them, the published values (``benchmarks/tables/published/modelnet.csv``), marked as such.
 
     python -m benchmarks.tables.literature outputs/grid/modelnet_real_airplane/results.csv \\
         --out benchmarks/results/modelnet_real_airplane --compile
