@@ -32,6 +32,7 @@ from src.paths import CONF_DIR
 from src.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.reporting import report_test_metrics, save_resolved_config
 from src.evaluated import evaluated_record
+from src.precision import settle_precision
 from src.trainer import build_trainer
 
 register_resolvers()
@@ -79,9 +80,10 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     refuse_unread_overrides(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # a network that samples at test (PRNet) repeats
     module, ckpt_path = load_module(cfg)
+    precision = settle_precision(cfg)
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
-    trainer = build_trainer(cfg, with_checkpoints=False)
+    trainer = build_trainer(cfg, with_checkpoints=False, precision=precision)
     trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer))

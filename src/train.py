@@ -31,6 +31,7 @@ from src.checkpoint_io import check_checkpoint, read_checkpoint
 from src.config import register_resolvers
 from src.errors import ConfigError
 from src.failures import job_main
+from src.precision import settle_precision
 from src.recorded import refuse_unread_overrides, refuse_unused_in_train
 from src.reporting import report_test_metrics, save_resolved_config
 from src.run_info import require_prepared_paper_data
@@ -95,13 +96,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
         check_checkpoint(cfg.ckpt_path, cfg.model.network._target_, resume=True, model=cfg.model)
     if cfg.init_weights:
         check_checkpoint(cfg.init_weights, cfg.model.network._target_, model=cfg.model)
+    precision = settle_precision(cfg)  # before the config is recorded: it names the precision run
     save_resolved_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = build_module(cfg.model)
     if cfg.init_weights:
         module.load_state_dict(read_checkpoint(cfg.init_weights)["state_dict"])
-    trainer = build_trainer(cfg)
+    trainer = build_trainer(cfg, precision=precision)
     require_one_batch(datamodule, trainer)
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)

@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 from src.checkpoint_io import AtomicCheckpointIO
 from src.files import remove_stale_temporaries
 from src.lightning_compat import patch_ddp_subprocess_launcher
+from src.precision import PrecisionChoice, settle_precision
 from src.quiet import quiet_lightning
 from src.signals import CheckpointOnSignal
 from src.wandb_logging import wandb_callbacks
@@ -23,8 +24,9 @@ log = logging.getLogger(__name__)
 TRAINING_ONLY_CALLBACKS = ("checkpoint", "periodic_checkpoint", "rng_state")
 
 
-def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
-    """Trainer with the configured loggers and callbacks (checkpointing only when training).
+def build_trainer(cfg: DictConfig, with_checkpoints: bool = True, precision: PrecisionChoice | None = None) -> L.Trainer:
+    """Trainer with the configured loggers and callbacks (checkpointing only when training), in ``precision``
+    (default: :func:`src.precision.settle_precision` of ``cfg``), kept as ``trainer.precision_choice``.
 
     Checkpoints are written by :class:`~src.checkpoint_io.AtomicCheckpointIO` (a temporary beside
     the target, then a rename); temporaries left in the checkpoint folders by killed runs are
@@ -43,4 +45,8 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
                 log.info("removed %s, a partial checkpoint left by a killed run", path)
     callbacks += wandb_callbacks(cfg, loggers)  # the wandb tables and 3D objects (src/wandb_logging.py)
     patch_ddp_subprocess_launcher()
-    return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks, plugins=[AtomicCheckpointIO()])
+    precision = precision or settle_precision(cfg)
+    trainer = hydra.utils.instantiate(cfg.trainer, precision=precision.precision, logger=loggers, callbacks=callbacks,
+                                      plugins=[AtomicCheckpointIO()])
+    trainer.precision_choice = precision  # for the start line (src/run_info.py)
+    return trainer
