@@ -48,3 +48,24 @@ def test_the_regions_survive_a_copy_and_pickling():
             assert other(x).dtype == torch.float32
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert net[0](x).dtype == torch.bfloat16  # autocast is back on after the region
+
+
+def test_model_fp32_modules_keeps_omnets_pose_head_in_float32_and_is_checked():
+    import hydra
+
+    from src.compose import compose_model_config
+    from src.errors import ConfigError
+    from src.models.module import RegistrationModule
+
+    cfg = compose_model_config("omnet", 0.0625, ["+model.fp32_modules=[iterations.*.regressor]"])
+    module = hydra.utils.instantiate(cfg)
+    assert module.hparams["fp32_modules"] == ["iterations.*.regressor"]
+    pooled = torch.randn(4, module.network.iterations[0].regressor[0][0].in_features)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert module.network.iterations[0].regressor(pooled).dtype == torch.float32
+        assert module.network.iterations[0].encoder[0](torch.randn(4, 8, 3)).dtype == torch.bfloat16
+    rebuilt = RegistrationModule(**module.hparams)  # what load_from_checkpoint does with the stored hyperparameters
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert rebuilt.network.iterations[0].regressor(pooled).dtype == torch.float32
+    with pytest.raises(ConfigError, match=r"^model.fp32_modules: 'head' matches no submodule of OMNet"):
+        RegistrationModule(network=dict(module.hparams["network"]), fp32_modules=["head"])
