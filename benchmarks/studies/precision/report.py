@@ -3,8 +3,9 @@ Error(R) over the seeds, the gap, the seed-to-seed spread, and the verdict.
 
     python -m benchmarks.studies.precision.report RUN/fits.csv [RUN2/fits.csv ...] [--out table.md]
 
-Verdict (at the method's last recorded step): ``changes`` when the bf16 seeds' mean Error(R) lies outside the range
-of the float32 seeds (min to max), else ``same``; runs with float32 parts (``fp32_modules``) are separate rows.
+Verdict (at the method's last recorded step, at least two seeds in each precision): ``changes`` when the bf16
+seeds' mean Error(R) lies outside the range of the float32 seeds (min to max) and the float32 mean outside the
+range of the bf16 seeds, else ``same``; runs with float32 parts (``fp32_modules``) are separate rows.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import pandas as pd
 from src.errors import ConfigError, exit_code_of
 
 KEYS = ["method", "width", "fp32_modules"]
+MIN_SEEDS = 2
 
 
 def _runs(frame: pd.DataFrame) -> pd.DataFrame:
@@ -45,7 +47,12 @@ def verdicts(runs: pd.DataFrame) -> dict[tuple, str]:
     out = {}
     for key, group in runs.groupby(KEYS):
         last = group.loc[group["step"].idxmax()]
-        out[key] = "same" if last["fp32_min"] <= last["bf16_mean"] <= last["fp32_max"] else "changes"
+        if last["seeds"] < MIN_SEEDS:
+            out[key] = f"- (fewer than {MIN_SEEDS} seeds)"
+            continue
+        within = (last["fp32_min"] <= last["bf16_mean"] <= last["fp32_max"]
+                  or last["bf16_min"] <= last["fp32_mean"] <= last["bf16_max"])
+        out[key] = "same" if within else "changes"
     return out
 
 
