@@ -77,7 +77,7 @@ def test_the_verdict_compares_the_bf16_mean_with_the_float32_seeds_range(tmp_pat
     row = markdown_table(capsys.readouterr().out)[1].iloc[0]
     assert (row["fp32 Error(R) mean (min–max)"], row["bf16 − fp32"], row["verdict"]) == ("12.00 (10.00–14.00)", "+1.00", "same")
     assert main([_fits(tmp_path, [20.0, 22.0, 24.0])]) == 0
-    assert markdown_table(capsys.readouterr().out)[1].iloc[0]["verdict"] == "changes"
+    assert markdown_table(capsys.readouterr().out)[1].iloc[0]["verdict"] == "changes (bf16 higher)"
     assert main([_fits(tmp_path, [2.0, 12.0, 40.0])]) == 0  # mean 18, but the bf16 seeds' range holds the float32 mean
     assert markdown_table(capsys.readouterr().out)[1].iloc[0]["verdict"] == "same"
     assert main([str(tmp_path / "none.csv")]) == 2

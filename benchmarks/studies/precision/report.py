@@ -3,9 +3,9 @@ Error(R) over the seeds, the gap, the seed-to-seed spread, and the verdict.
 
     python -m benchmarks.studies.precision.report RUN/fits.csv [RUN2/fits.csv ...] [--out table.md]
 
-Verdict (at the method's last recorded step, at least two seeds in each precision): ``changes`` when the bf16
+Verdict (at the method's last recorded step with at least two seeds in each precision): ``changes`` when the bf16
 seeds' mean Error(R) lies outside the range of the float32 seeds (min to max) and the float32 mean outside the
-range of the bf16 seeds, else ``same``; runs with float32 parts (``fp32_modules``) are separate rows.
+range of the bf16 seeds (higher or lower: either changes the result), else ``same``; runs with float32 parts (``fp32_modules``) are separate rows.
 """
 
 from __future__ import annotations
@@ -42,17 +42,20 @@ def _runs(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def verdicts(runs: pd.DataFrame) -> dict[tuple, str]:
-    """(method, width, fp32_modules) -> ``same`` or ``changes`` at its last recorded step."""
+def verdicts(runs: pd.DataFrame) -> dict[tuple, tuple[int, str]]:
+    """(method, width, fp32_modules) -> (the step judged, ``same`` or ``changes (bf16 higher|lower)``): the last
+    recorded step with at least :data:`MIN_SEEDS` seeds."""
     out = {}
     for key, group in runs.groupby(KEYS):
-        last = group.loc[group["step"].idxmax()]
-        if last["seeds"] < MIN_SEEDS:
-            out[key] = f"- (fewer than {MIN_SEEDS} seeds)"
+        enough = group[group["seeds"] >= MIN_SEEDS]
+        if enough.empty:
+            out[key] = (int(group["step"].max()), f"- (fewer than {MIN_SEEDS} seeds)")
             continue
+        last = enough.loc[enough["step"].idxmax()]
         within = (last["fp32_min"] <= last["bf16_mean"] <= last["fp32_max"]
                   or last["bf16_min"] <= last["fp32_mean"] <= last["bf16_max"])
-        out[key] = "same" if within else "changes"
+        direction = "higher" if last["gap"] > 0 else "lower"
+        out[key] = (int(last["step"]), "same" if within else f"changes (bf16 {direction})")
     return out
 
 
@@ -61,12 +64,11 @@ def table(runs: pd.DataFrame) -> str:
     lines = ["| method | width | bf16 with float32 parts | step | seeds | fp32 Error(R) mean (min–max) | "
              "bf16 Error(R) mean (min–max) | bf16 − fp32 | verdict |", "|---|---:|---|---:|---:|---:|---:|---:|---|"]
     for _, r in runs.sort_values([*KEYS, "step"]).iterrows():
-        key = (r["method"], r["width"], r["fp32_modules"])
-        last = r["step"] == runs[(runs[KEYS] == pd.Series(dict(zip(KEYS, key)))).all(axis=1)]["step"].max()
+        step, verdict = found[(r["method"], r["width"], r["fp32_modules"])]
         lines.append(f"| {r['method']} | {r['width']:g} | {r['fp32_modules'] or '-'} | {r['step']} | {r['seeds']} | "
                      f"{r['fp32_mean']:.2f} ({r['fp32_min']:.2f}–{r['fp32_max']:.2f}) | "
                      f"{r['bf16_mean']:.2f} ({r['bf16_min']:.2f}–{r['bf16_max']:.2f}) | {r['gap']:+.2f} | "
-                     f"{found[key] if last else ''} |")
+                     f"{verdict if r['step'] == step else ''} |")
     return "\n".join(lines) + "\n"
 
 
