@@ -58,6 +58,15 @@ def test_it_trains_under_bf16_autocast_with_the_moved_cloud_in_float32():
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
+def test_its_model_config_keeps_the_annealing_parameters_in_float32():
+    module = instantiate(compose_model_config("rpmnet", 0.125))
+    assert module.hparams["fp32_modules"] == ["weights_net"]
+    src, ref, _ = _batch()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        beta, alpha = module.network.weights_net(src, ref)
+    assert beta.dtype == alpha.dtype == torch.float32
+
+
 def test_loss_is_zero_pointwise_for_the_ground_truth_and_discounts_early_iterations():
     model = _small()
     src, _, gt = _batch()
