@@ -39,6 +39,7 @@ from src.run.trained_on import refuse_test_overlap
 from src.run.trainer import build_trainer
 from src.utils.errors import CheckpointError, ConfigError
 from src.utils.paths import CONF_DIR
+from src.run.precision import settle_precision
 
 register_resolvers()
 log = logging.getLogger(__name__)
@@ -85,13 +86,14 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     refuse_unread_overrides(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # a network that samples at test (PRNet) repeats
     module, ckpt_path = load_module(cfg)
+    precision = settle_precision(cfg)
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.setup("test")
     refuse_empty_limits(cfg, datamodule, ("test",))
     overlap = {"test_overlap_checked": False} if cfg.get("weights") else refuse_test_overlap(
         read_checkpoint(ckpt_path), ckpt_path, datamodule)
-    trainer = build_trainer(cfg, with_checkpoints=False)
+    trainer = build_trainer(cfg, with_checkpoints=False, precision=precision)
     trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer), **overlap)

@@ -45,6 +45,7 @@ from src.run.resume import finished_record, resolve_ckpt_path, resuming_in_place
 from src.run.run_dir import refuse_reused_run_dir
 from src.run.trainer import build_trainer
 from src.utils.errors import ConfigError
+from src.run.precision import settle_precision
 
 register_resolvers()
 log = logging.getLogger(__name__)
@@ -112,13 +113,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
         refuse_resume_past_budget(cfg, read_checkpoint(cfg.ckpt_path))
     if cfg.init_weights:
         check_checkpoint(cfg.init_weights, cfg.model.network._target_, model=cfg.model)
+    precision = settle_precision(cfg)  # before the config is recorded: it names the precision run
     save_resolved_config(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = hydra.utils.instantiate(cfg.data)
     module = build_module(cfg.model)
     if cfg.init_weights:
         module.load_state_dict(read_checkpoint(cfg.init_weights)["state_dict"])
-    trainer = build_trainer(cfg)
+    trainer = build_trainer(cfg, precision=precision)
     require_one_batch(datamodule, trainer)
     if cfg.test_after_fit:
         datamodule.setup("test")

@@ -127,6 +127,7 @@ RULES: dict[str, Rule] = {
     "seed": SEED,
     "model_scale": POSITIVE,
     "test_after_fit": FLAG,
+    "force_precision": FLAG,
     # data (conf/data/base.yaml)
     "data.pair.sampling": Rule(str, choices=SAMPLINGS),
     "data.pair.partial": Rule(str, choices=PARTIAL_MANNERS),

@@ -80,7 +80,10 @@ class DeepGMR(nn.Module):
 
     def point_features(self, points: Tensor) -> Tensor:
         if self.use_rri:
-            return rri_features(points, self.k)
+            # neighbours and angles in float32 under bf16 autocast (the official code computes them in its NumPy
+            # data loader): in bf16 their products round the angles and change the chosen neighbours
+            with full_precision(points.device):
+                return rri_features(at_least_fp32(points), self.k)
         return points - points.mean(dim=1, keepdim=True)
 
     def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:

@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from baselines.learned.common.correspondence import estimate_normals, ppf_features, sinkhorn, soft_correspondence_svd
 from baselines.learned.common.layers import MLP
+from baselines.learned.common.global_feature import at_least_fp32, full_precision
 from src.utils.errors import ConfigError, PointCloudError
 from src.geometry import se3_apply
 from src.models.base import scaled
@@ -126,8 +127,10 @@ class RPMNet(nn.Module):
             row_sums = perm.sum(dim=2)
             transform, _ = soft_correspondence_svd(points_src, points_ref, perm, weights=row_sums, normalize_rows=True)
             pose = transform.detach()
-            src_t = se3_apply(pose, points_src)
-            normals_src_t = normals_src @ pose[:, :3, :3].transpose(1, 2)
+            with full_precision(points_src.device):  # the moved cloud and normals stay float32 under bf16 autocast
+                pose = at_least_fp32(pose)
+                src_t = se3_apply(pose, points_src)
+                normals_src_t = normals_src @ pose[:, :3, :3].transpose(1, 2)
             out["transforms"].append(transform)
             out["row_sums"].append(row_sums)
             out["col_sums"].append(perm.sum(dim=1))

@@ -24,6 +24,7 @@ from torchmetrics import MeanMetric
 
 from src.metrics import METRIC_NAMES, SCORE, RegistrationMetrics
 from src.models.base import check_network
+from src.models.fp32_regions import keep_fp32
 from src.utils.errors import ConfigError, DivergenceError
 
 #: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
@@ -155,7 +156,9 @@ class RegistrationModule(L.LightningModule):
     ``scheduler`` is ``{name: <one of SCHEDULERS>, **its arguments}`` or None (constant lr). Each
     method's optimiser, schedule, batch, budget and checkpoint selection come from its recipe,
     ``conf/recipe/<model>.yaml`` (docs/recipes.md). ``lr_milestones``/``lr_gamma`` (step milestones)
-    are what checkpoints and model configs written before the recipes hold.
+    are what checkpoints and model configs written before the recipes hold. ``fp32_modules``: the network's
+    submodules (``fnmatch`` patterns of their names) that run in float32 under bf16 autocast
+    (:func:`src.models.fp32_regions.keep_fp32`).
     """
 
     #: What each validation logs, that a checkpoint can be selected on (``callbacks.checkpoint.monitor``).
@@ -171,6 +174,7 @@ class RegistrationModule(L.LightningModule):
         compile: bool = False,
         lr_milestones: Sequence[int] | None = None,
         lr_gamma: float = 0.1,
+        fp32_modules: Sequence[str] = (),
     ) -> None:
         super().__init__()
         network = _evaluate_calls(_plain(network))
@@ -182,6 +186,12 @@ class RegistrationModule(L.LightningModule):
         self.save_hyperparameters({"network": network, "lr": lr, "weight_decay": weight_decay, "scheduler": scheduler,
                                    "euler_seq": euler_seq, "compile": compile})
         self.network: nn.Module = check_network(hydra.utils.instantiate(network), network["_target_"])
+        if fp32_modules:
+            try:
+                keep_fp32(self.network, list(fp32_modules))
+            except ValueError as err:
+                raise ConfigError(f"model.{err}") from None
+            self.hparams["fp32_modules"] = list(fp32_modules)
         self.val_metrics = RegistrationMetrics(euler_seq)
         self.test_metrics = RegistrationMetrics(euler_seq)
         # Eval losses as sum-reduced metrics: Lightning's own sync_dist mean truncates the (integer)

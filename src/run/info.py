@@ -5,7 +5,7 @@
   before anything is built, in one line naming both ways forward: prepare it, or the embedded synthetic
   data with a CPU-sized recipe.
 * :class:`TrainingForecast` (``conf/callbacks/default.yaml``): one line when training starts (the data
-  and whether it is synthetic, the model's size, steps x batch, the device, the run dir), and after the
+  and whether it is synthetic, the model's size, steps x batch, the device, the precision and why, the run dir), and after the
   first ``after_steps`` optimiser steps the measured seconds per step and the time of the rest on this
   machine; a schedule of more than ``long_hours`` on a CPU also says how to choose a CPU-sized one.
 """
@@ -86,8 +86,13 @@ def _device(trainer: L.Trainer) -> str:
     return torch.cuda.get_device_name(device) if device.type == "cuda" else str(device)
 
 
+def _precision(trainer: L.Trainer) -> str:
+    choice = getattr(trainer, "precision_choice", None)  # src.run.trainer.build_trainer's
+    return f"precision {trainer.precision}" + (f" ({choice.reason})" if choice is not None else "")
+
+
 def start_line(trainer: L.Trainer, module: L.LightningModule) -> str:
-    """``train: <data> | <model> | <steps> x batch <b> on <device> | run dir <dir>``."""
+    """``train: <data> | <model> | <steps> x batch <b> on <device> | precision <p> (<why>) | run dir <dir>``."""
     datamodule = trainer.datamodule
     dataset = str(getattr(datamodule, "dataset", "?"))
     data = f"{dataset} data" + (" (SYNTHETIC procedural shapes, not ModelNet40)" if dataset == "synthetic" else "")
@@ -102,7 +107,8 @@ def start_line(trainer: L.Trainer, module: L.LightningModule) -> str:
     steps = trainer.estimated_stepping_batches
     budget = f"{'unlimited' if math.isinf(steps) else f'{int(steps):,}'} steps x batch {getattr(datamodule, 'batch_size', '?')}{processes}"
     resumed = f" (resuming at step {trainer.global_step:,})" if trainer.global_step else ""
-    return f"train: {data} | {model} | {budget}{resumed} on {_device(trainer)} | run dir {trainer.default_root_dir}"
+    return (f"train: {data} | {model} | {budget}{resumed} on {_device(trainer)} | {_precision(trainer)} | "
+            f"run dir {trainer.default_root_dir}")
 
 
 class TrainingForecast(L.Callback):

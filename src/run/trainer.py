@@ -17,6 +17,7 @@ from src.run.quiet import quiet_lightning, quiet_step_budget
 from src.run.signals import CheckpointOnSignal
 from src.run.wandb_logging import wandb_callbacks
 from src.utils.files import remove_stale_temporaries
+from src.run.precision import PrecisionChoice, settle_precision
 
 log = logging.getLogger(__name__)
 
@@ -24,8 +25,9 @@ log = logging.getLogger(__name__)
 TRAINING_ONLY_CALLBACKS = ("checkpoint", "periodic_checkpoint", "rng_state")
 
 
-def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
-    """Trainer with the configured loggers and callbacks (checkpointing only when training).
+def build_trainer(cfg: DictConfig, with_checkpoints: bool = True, precision: PrecisionChoice | None = None) -> L.Trainer:
+    """Trainer with the configured loggers and callbacks (checkpointing only when training), in ``precision``
+    (default: :func:`src.run.precision.settle_precision` of ``cfg``), kept as ``trainer.precision_choice``.
 
     Checkpoints are written by :class:`~src.run.checkpoint_io.AtomicCheckpointIO` (a temporary beside
     the target, then a rename); temporaries left in the checkpoint folders by killed runs are
@@ -47,4 +49,8 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True) -> L.Trainer:
     if cfg.trainer.get("enable_progress_bar", True):
         callbacks.append(StepProgressBar())  # Epoch N, no v_num, a resumed epoch's true total (src/run/progress.py)
     patch_ddp_subprocess_launcher()
-    return hydra.utils.instantiate(cfg.trainer, logger=loggers, callbacks=callbacks, plugins=[AtomicCheckpointIO()])
+    precision = precision or settle_precision(cfg)
+    trainer = hydra.utils.instantiate(cfg.trainer, precision=precision.precision, logger=loggers, callbacks=callbacks,
+                                      plugins=[AtomicCheckpointIO()])
+    trainer.precision_choice = precision  # for the start line (src/run/info.py)
+    return trainer

@@ -307,7 +307,7 @@ def test_train_refuses_weights(tmp_path, cache):
 
 #: A Hydra app run in this process leaves its logging alone (its handlers would hold capsys's closed stderr).
 NO_LOGGING = ["hydra/job_logging=none", "hydra/hydra_logging=none"]
-TOP_LEVEL = ("the top-level keys are callbacks, ckpt_path, data, hydra, init_weights, logger, model, model_scale, on_failure, "
+TOP_LEVEL = ("the top-level keys are callbacks, ckpt_path, data, force_precision, hydra, init_weights, logger, model, model_scale, on_failure, "
              "output_dir, pairs_per_scan, partial, real_train_categories, sampling, seed, task_name, test_after_fit, "
              "test_category, test_size, train_category, trainer, val_repeat, val_size, variant, weights, weights_importer")
 

@@ -3,6 +3,7 @@ quiet output, and the test record (pairs, dataset, split, categories from the da
 
 import json
 import os
+import re
 import subprocess
 import sys
 from types import SimpleNamespace
@@ -50,6 +51,7 @@ def test_a_first_run_prints_what_it_does_its_estimate_and_its_results_once(tmp_p
     out = result.stdout + result.stderr
     assert result.returncode == 0, out
     assert "train: synthetic data (SYNTHETIC procedural shapes, not ModelNet40), 14 training shapes | OMNet " in out
+    assert re.search(r"\| precision (32-true|bf16-mixed) \(.+\) \| run dir ", out)  # the choice and why (src/run/precision.py)
     assert "3 steps x batch 2 on cpu" in out and "s/step measured over steps 2-2: the remaining 1 steps take ~" in out
     assert out.count("Test metrics (unseen_shapes protocol, ts, prnet; 2 of 7 pairs of synthetic data, split test: ") == 1
     assert f"wrote {tmp_path / 'run' / 'metrics.json'}" in out

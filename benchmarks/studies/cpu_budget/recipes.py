@@ -61,7 +61,8 @@ RECIPES: dict[str, dict] = {
     "airplane+bathtub": {"model_scale": 0.25, "batch": 16,
                          "overrides": ["model.lr=1e-3", "real_train_categories=[airplane,bathtub]"]},
 }
-#: One torch thread per run, and glibc's allocator kept from returning (then zero-filling) freed pages:
+#: One torch thread per run (two runs at once beat one run with two threads on two cores: benchmarks/results/
+#: train_step_learned_cpu.md, "Threads"), and glibc's allocator kept from returning (then zero-filling) freed pages:
 #: measured in benchmarks/results/speed_cpu_omnet.md (the "allocator setting" rows).
 CPU_TRAINING_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "MALLOC_MMAP_MAX_": "0",
                     "MALLOC_TRIM_THRESHOLD_": "68719476736"}

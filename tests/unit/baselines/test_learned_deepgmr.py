@@ -54,6 +54,15 @@ def test_gmm_steps_run_in_float32_under_bf16_autocast():
     loss.backward()
 
 
+def test_rri_features_are_the_float32_ones_under_bf16_autocast():
+    model = DeepGMR(width=0.125, k=8)
+    src, _, _ = _batch()
+    plain = model.point_features(src)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        autocast = model.point_features(src)
+    assert autocast.dtype == torch.float32 and torch.equal(autocast, plain)
+
+
 def test_loss_is_the_official_two_way_mse():
     model = DeepGMR(width=0.125, k=8)
     src, ref, gt = _batch()

@@ -45,6 +45,28 @@ def test_two_iterations_while_training_five_at_evaluation_all_rigid():
     _assert_rigid(out["transforms"][-1])
 
 
+def test_it_trains_under_bf16_autocast_with_the_moved_cloud_in_float32():
+    """The moved source and its normals stay float32 (mixed bf16 and float32 geometry would stop the step)."""
+    torch.manual_seed(0)
+    model = _small()
+    src, ref, gt = _batch()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(src, ref, gt)
+        loss = model.loss(out, gt)["loss"]
+    loss.backward()
+    assert torch.isfinite(loss) and len(out["transforms"]) == 2
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def test_its_model_config_keeps_the_annealing_parameters_in_float32():
+    module = instantiate(compose_model_config("rpmnet", 0.125))
+    assert module.hparams["fp32_modules"] == ["weights_net"]
+    src, ref, _ = _batch()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        beta, alpha = module.network.weights_net(src, ref)
+    assert beta.dtype == alpha.dtype == torch.float32
+
+
 def test_loss_is_zero_pointwise_for_the_ground_truth_and_discounts_early_iterations():
     model = _small()
     src, _, gt = _batch()
