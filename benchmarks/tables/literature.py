@@ -35,6 +35,9 @@ DECIMALS = {"RRE": 3, "RTE": 4, "CD": 5}
 UNITS = {"RRE": " (°)"}
 PUBLISHED = Path(__file__).with_name("published") / "modelnet.csv"
 PUBLISHED_COLUMNS = ("protocol", "method", "metric", "value", "source", "checked")
+#: What a published value's ``checked`` says in the table's note (``benchmarks/tables/published/README.md``).
+CHECKED_NOTES = {"yes": "", "listing": " (as on a public benchmark listing; not yet read in the paper's table)",
+                 "no": " (not yet checked against the source)"}
 COLUMNS = pd.MultiIndex.from_tuples([(PROTOCOLS[p], m) for p in PROTOCOLS for m in METRICS])
 LEARNED_MARK = " †"
 
@@ -154,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     paper_rows = published_rows(paper)
     sources = paper.drop_duplicates("source")
     notes = [*args.note, "Published values (paper rows, in italics): " + "; ".join(
-        f"{row.method}: {row.source}{'' if str(row.checked).lower() == 'yes' else ' (not yet checked against the source)'}"
+        f"{row.method}: {row.source}{CHECKED_NOTES.get(str(row.checked).lower(), CHECKED_NOTES['no'])}"
         for row in sources.itertuples())]
     if any(label.endswith(LEARNED_MARK) for label in ours.index):
         notes.append("† learned; its weights as the grid's config names them.")
