@@ -24,11 +24,28 @@ def weights_file(weights: str) -> Path:
     return SHIPPED_DIR / f"{weights}.ckpt"
 
 
+def state_sha256(checkpoint: Path) -> str:
+    """sha256 of a checkpoint's network weights (each tensor's name, dtype, shape and bytes, in name order): what
+    the estimates depend on, unchanged by the metadata stored beside them."""
+    import hashlib
+
+    import torch
+
+    digest = hashlib.sha256()
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"]
+    for name in sorted(state):
+        tensor = state[name].contiguous()
+        digest.update(f"{name}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
 def weights_sha256(weights: str) -> str:
-    """sha256 of :func:`weights_file`'s bytes."""
+    """sha256 of the published weights' file, or of a shipped checkpoint's network weights (:func:`state_sha256`)."""
     from src.data.cache import file_sha256
 
-    return file_sha256(weights_file(weights))
+    path = weights_file(weights)
+    return file_sha256(path) if weights.startswith("official:") else state_sha256(path)
 
 
 def golden_path(method: str) -> Path:
