@@ -33,13 +33,13 @@ from src.run.checkpoint_io import (
 )
 from src.run.evaluated import evaluated_record
 from src.run.failures import job_main
+from src.run.precision import settle_precision
 from src.run.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.run.reporting import report_test_metrics, save_resolved_config
 from src.run.trained_on import refuse_test_overlap
 from src.run.trainer import build_trainer
 from src.utils.errors import CheckpointError, ConfigError
 from src.utils.paths import CONF_DIR
-from src.run.precision import settle_precision
 
 register_resolvers()
 log = logging.getLogger(__name__)

@@ -35,6 +35,7 @@ from src.run.checkpoint_io import check_checkpoint, read_checkpoint
 from src.run.evaluated import evaluated_record
 from src.run.failures import job_main
 from src.run.info import require_prepared_paper_data
+from src.run.precision import settle_precision
 from src.run.recorded import (
     refuse_resume_past_budget,
     refuse_unread_overrides,
@@ -45,7 +46,6 @@ from src.run.resume import finished_record, resolve_ckpt_path, resuming_in_place
 from src.run.run_dir import refuse_reused_run_dir
 from src.run.trainer import build_trainer
 from src.utils.errors import ConfigError
-from src.run.precision import settle_precision
 
 register_resolvers()
 log = logging.getLogger(__name__)

@@ -36,6 +36,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from src.run.resume import own_last_checkpoint
 from src.utils.errors import CheckpointError, ConfigError, exit_code_of
 
 PAPER_STEPS, PAPER_BATCH = 260_000, 64
@@ -98,7 +99,7 @@ def loader_pairs_per_second(plan: Plan, batches: int) -> float:
 
 def train(plan: Plan, run_dir: Path, seconds: float) -> int:
     """``src.train`` for at most ``seconds`` (resuming ``run_dir``'s ``last.ckpt`` if there is one)."""
-    last = run_dir / "checkpoints" / "last.ckpt"
+    last = own_last_checkpoint(run_dir)
     command = [sys.executable, "-m", "src.train", *plan.train, "test_after_fit=false",
                "callbacks.periodic_checkpoint.train_time_interval.minutes=2", f"hydra.run.dir={run_dir}",
                *([f"ckpt_path={last}"] if last.is_file() else [])]
@@ -151,7 +152,7 @@ def join_weights(folder: Path, target: Path) -> Path:
 def best_checkpoint(run_dir: Path) -> Path | None:
     """The run's best checkpoint (the newest ``best-*.ckpt``), else its ``last.ckpt``."""
     candidates = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
-    last = run_dir / "checkpoints" / "last.ckpt"
+    last = own_last_checkpoint(run_dir)
     return candidates[-1] if candidates else (last if last.is_file() else None)
 
 
@@ -180,7 +181,7 @@ def trial(out: Path, minutes: float, dry_run: bool, run_dir: Path, shard_bytes: 
     left = minutes * 60 - (time.perf_counter() - start) - 60  # a minute for the export
     code = train(plan, run_dir, left) if left > 0 else None
     exported = {}
-    for name, checkpoint in (("best", best_checkpoint(run_dir)), ("last", run_dir / "checkpoints" / "last.ckpt")):
+    for name, checkpoint in (("best", best_checkpoint(run_dir)), ("last", own_last_checkpoint(run_dir))):
         if checkpoint is not None and checkpoint.is_file():
             exported[name] = [p.name for p in split_weights(checkpoint, out / f"weights_{name}", shard_bytes)]
     device = torch.cuda.get_device_name(0) if plan.device == "cuda" else "CPU (dry run)"

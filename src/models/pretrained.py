@@ -14,7 +14,6 @@ and the experiment the checkpoint itself records (``trained_on``, :mod:`src.run.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -22,12 +21,14 @@ from typing import Any
 import torch
 import yaml
 
-from src.utils.errors import CheckpointError
-from src.models.module import RegistrationModule
-from src.utils.paths import SHIPPED_DIR, without_folder
-from src.run.reporting import read_csv_logs
+from src.data.cache import file_sha256
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
-from src.run.trained_on import IDENTITY_KEYS, KEY as TRAINED_ON, trained_on_record
+from src.models.module import RegistrationModule
+from src.run.reporting import read_csv_logs
+from src.run.trained_on import IDENTITY_KEYS, trained_on_record
+from src.run.trained_on import KEY as TRAINED_ON
+from src.utils.errors import CheckpointError
+from src.utils.paths import SHIPPED_DIR, without_folder
 
 
 def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR, network: str | None = None) -> Path:
@@ -53,7 +54,7 @@ def verify_card(ckpt: Path, card: dict[str, Any]) -> Path:
     card's, and the experiment the checkpoint records (``trained_on``) is the one the card claims."""
     if not ckpt.is_file():
         raise CheckpointError(f"{ckpt.with_suffix('.json')} describes {ckpt}, which does not exist")
-    digest = _sha256(ckpt)
+    digest = file_sha256(ckpt)
     if digest != card.get("sha256"):
         raise CheckpointError(f"{ckpt} has sha256 {digest[:12]}…, not the {str(card.get('sha256'))[:12]}… of its card "
                               f"{ckpt.with_suffix('.json').name}: the file or the card was changed; restore both, or "
@@ -70,14 +71,6 @@ def verify_card(ckpt: Path, card: dict[str, Any]) -> Path:
 
 def _identity(identity: dict[str, Any]) -> str:
     return " ".join(f"{k}={v}" for k, v in identity.items())
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _validation_curve(run_dir: Path) -> list[dict[str, float]]:
@@ -131,7 +124,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
     card: dict[str, Any] = {
         "name": name,
         "file": target.name,
-        "sha256": _sha256(target),
+        "sha256": file_sha256(target),
         "size_mb": round(target.stat().st_size / 2**20, 2),
         "weights_dtype": "float16" if half else "float32",
         "note": note,

@@ -36,6 +36,7 @@ from typing import Any
 
 import yaml
 
+from src.run.resume import own_last_checkpoint
 from src.utils.errors import ConfigError, exit_code_of
 from src.utils.files import write_text_atomic
 
@@ -82,7 +83,7 @@ class Chain:
 
     @property
     def last(self) -> Path:
-        return self.run_dir / "checkpoints" / "last.ckpt"
+        return own_last_checkpoint(self.run_dir)
 
     def command(self) -> list[str]:
         """The ``src.train`` command of the next call."""

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from src.run.resume import own_last_checkpoint
 from src.utils.errors import ConfigError
 
 #: What a run that trained leaves in its folder (a run refused before training leaves none of them: it may be
@@ -24,7 +25,7 @@ def refuse_reused_run_dir(cfg: DictConfig) -> None:
     found = [name for name in RUN_MARKERS if (folder / name).exists()]
     if not found:
         return
-    own_last = folder / "checkpoints" / "last.ckpt"
+    own_last = own_last_checkpoint(folder)
     if cfg.get("ckpt_path") and Path(cfg.ckpt_path).resolve() == own_last.resolve():
         return
     raise ConfigError(f"{folder} already holds a run ({', '.join(found)}): a second training there would mix its files "

@@ -12,12 +12,12 @@ from omegaconf import DictConfig
 
 from src.run.checkpoint_io import AtomicCheckpointIO
 from src.run.lightning_compat import patch_ddp_subprocess_launcher
+from src.run.precision import PrecisionChoice, settle_precision
 from src.run.progress import StepProgressBar
 from src.run.quiet import quiet_lightning, quiet_step_budget
 from src.run.signals import CheckpointOnSignal
 from src.run.wandb_logging import wandb_callbacks
 from src.utils.files import remove_stale_temporaries
-from src.run.precision import PrecisionChoice, settle_precision
 
 log = logging.getLogger(__name__)
 
