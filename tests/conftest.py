@@ -8,6 +8,9 @@ pyproject.toml, skipped here in one place:
   (:func:`src.utils.paths.shared_path`: ``../shared`` or ``$OMNET_SHARED_DIR``) is absent;
 - ``goicp``: skipped when the optional Go-ICP extension cannot be imported.
 
+Property tests (hypothesis) run the ``suite`` profile: the same examples on every run and machine (a CI run is
+reproducible), few of them, no shrinking. ``pytest --hypothesis-profile=explore`` draws new, more examples.
+
 Plain helpers (archive writers, meshes, configs) are in :mod:`tests.helpers`.
 """
 
@@ -20,6 +23,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, Phase, settings
 
 from src.data.categories import MODELNET40_CATEGORIES
 from tests.helpers.markers import skip_reason
@@ -27,6 +31,12 @@ from tests.helpers.meshes import CUBE_QUADS, CUBE_TRIANGLES, CUBE_V, TETRA_F, TE
 from tests.helpers.modelnet import TRAIN, write_category
 
 torch.set_num_threads(1)
+
+_PROPERTY_SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("suite", max_examples=30, derandomize=True, database=None,
+                          phases=(Phase.explicit, Phase.generate), **_PROPERTY_SETTINGS)
+settings.register_profile("explore", max_examples=300, **_PROPERTY_SETTINGS)
+settings.load_profile("suite")
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -82,7 +82,8 @@ def say(text: str) -> None:
 def _device(trainer: L.Trainer) -> str:
     device = trainer.strategy.root_device
     if device.type == "cpu":
-        return f"cpu ({usable_cores()} cores, {torch.get_num_threads()} torch threads)"
+        cores, threads = usable_cores(), torch.get_num_threads()
+        return f"cpu ({cores} core{'s' * (cores != 1)}, {threads} torch thread{'s' * (threads != 1)})"
     return torch.cuda.get_device_name(device) if device.type == "cuda" else str(device)
 
 

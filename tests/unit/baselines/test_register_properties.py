@@ -12,7 +12,7 @@ import functools
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -20,9 +20,6 @@ from baselines.registry import get_registrator
 from src.utils.errors import UserError
 
 DTYPES = (np.float64, np.float32, np.float16, np.int32)
-#: Few examples, no shrinking: the suite stays within about a minute on two cores, a failure included.
-SETTINGS = settings(max_examples=40, deadline=None, phases=(Phase.explicit, Phase.reuse, Phase.generate),
-                    suppress_health_check=[HealthCheck.too_slow])
 
 
 @functools.cache
@@ -71,21 +68,22 @@ def _holds_the_contract(name: str, src: np.ndarray, ref: np.ndarray) -> np.ndarr
 
 
 @pytest.mark.parametrize("name", ["icp", "fgr"])
-@SETTINGS
+@settings(max_examples=40)
 @given(pair=clouds())
 def test_a_classical_method_gives_a_rigid_transform_or_one_line(name, pair):
     _holds_the_contract(name, *pair)
 
 
-@settings(SETTINGS, max_examples=8)
+@settings(max_examples=8)
 @given(pair=clouds())
 def test_a_learned_method_gives_a_rigid_transform_or_one_line(pair):
     _holds_the_contract("omnet", *pair)
 
 
-@SETTINGS
+@settings(max_examples=40)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(50, 400), scale=st.integers(-3, 6), offset=st.integers(0, 6),
        angle=st.floats(0.0, 3.0), dtype=st.sampled_from([np.float64, np.float32]))
+@example(seed=225, n=50, scale=0, offset=6, angle=2.1002939220358647, dtype=np.float32)  # float32 at 1e6
 def test_icp_recovers_a_small_motion_at_any_scale_and_offset(seed, n, scale, offset, angle, dtype):
     rng = np.random.default_rng(seed)
     size = 10.0 ** scale
@@ -93,8 +91,16 @@ def test_icp_recovers_a_small_motion_at_any_scale_and_offset(seed, n, scale, off
     rotation = Rotation.from_rotvec(rng.normal(size=3) / np.sqrt(3) * np.radians(angle)).as_matrix()
     truth = np.eye(4)
     truth[:3, :3], truth[:3, 3] = rotation, (np.eye(3) - rotation) @ src.mean(axis=0) + 0.002 * size * rng.normal(size=3)
-    ref = src @ truth[:3, :3].T + truth[:3, 3]
-    transform = _holds_the_contract("icp", src.astype(dtype), ref.astype(dtype))
+    src_seen, ref_seen = src.astype(dtype), (src @ truth[:3, :3].T + truth[:3, 3]).astype(dtype)
+    transform = _holds_the_contract("icp", src_seen, ref_seen)
     assert transform is not None
-    moved = src @ transform[:3, :3].T + transform[:3, 3]
-    assert np.sqrt(np.mean(np.sum((moved - ref) ** 2, axis=1))) < 0.01 * size
+    # Judged on the clouds ICP was given: far from the origin, float32 rounds the points themselves (its spacing at
+    # 1e6 is 0.06), so no transform fits them better than the truth does.
+    best = _rms_residual(truth, src_seen, ref_seen)
+    assert _rms_residual(transform, src_seen, ref_seen) < 0.01 * size + 2 * best
+
+
+def _rms_residual(transform: np.ndarray, src: np.ndarray, ref: np.ndarray) -> float:
+    """Root mean square distance, in float64, between ``src`` moved by ``transform`` and ``ref``."""
+    src, ref = src.astype(np.float64), ref.astype(np.float64)
+    return float(np.sqrt(np.mean(np.sum((src @ transform[:3, :3].T + transform[:3, 3] - ref) ** 2, axis=1))))

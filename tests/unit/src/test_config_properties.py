@@ -13,7 +13,7 @@ import hydra
 import pytest
 import torch
 from hydra.errors import ConfigCompositionException, OverrideParseException
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from src.run.cli import describe_hydra_error
@@ -23,9 +23,6 @@ from src.train import build_module
 from src.validation import GRID_RULES, RULES, validate_config, validate_grid_config
 from tests.helpers.registration_helpers import compose_config
 
-#: Few examples, no shrinking: the suite stays within about a minute on two cores, a failure included.
-SETTINGS = settings(max_examples=30, deadline=None, phases=(Phase.explicit, Phase.reuse, Phase.generate),
-                    suppress_health_check=[HealthCheck.too_slow])
 #: Keys of the primary config's groups (the grid's own apart) and a few keys no rule names.
 KEYS = sorted(RULES) + ["data.pair", "model.network", "trainer.precision", "callbacks.checkpoint.monitor"]
 NAMES = st.text("abcdefghijklmnopqrstuvwxyz_", min_size=1, max_size=8)
@@ -77,13 +74,11 @@ def _holds_the_contract(overrides: list[str], config_name: str = "config") -> No
         assert str(user_error) and "\n" not in str(user_error), repr(user_error)
 
 
-@SETTINGS
 @given(key=st.sampled_from(KEYS), value=VALUES)
 def test_a_generated_value_of_any_key_validates_or_is_one_line(key, value):
     _holds_the_contract([f"{key}={_literal(value)}"])
 
 
-@SETTINGS
 @given(group=st.sampled_from(["data", "data.pair", "data.build", "data.splits.test", "model", "model.network",
                               "trainer", "callbacks.checkpoint"]),
        names=st.lists(NAMES, min_size=1, max_size=3), value=SCALARS)
@@ -92,13 +87,12 @@ def test_an_unknown_nested_key_is_one_line(group, names, value):
 
 
 @pytest.mark.parametrize("model", ["omnet", "dcp", "rpmnet"])
-@settings(SETTINGS, max_examples=10)
+@settings(max_examples=10)
 @given(key=st.sampled_from([k for k in RULES if k.startswith("model.network.")]), value=SCALARS)
 def test_a_network_value_of_another_model_validates_or_is_one_line(model, key, value):
     _holds_the_contract([f"model={model}", f"{key}={_literal(value)}"])
 
 
-@SETTINGS
 @given(key=st.sampled_from(sorted(GRID_RULES) + ["benchmark.max_pairs_by_method.icp"]), value=VALUES)
 def test_a_generated_grid_value_validates_or_is_one_line(key, value):
     from benchmarks.grid.plan import GRID_CONFIG  # (stores the grid's primary config)
