@@ -42,13 +42,14 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from baselines.methods import Method, display_name, get_method, method_of_network
-from benchmarks.tables import render as tables
 from benchmarks.grid.plan import GRID_CONFIG
+from benchmarks.tables import render as tables
 from benchmarks.tables.paper import EXPERIMENT_LABELS, canonical_experiment
 from src.compose import compose_experiment
-from src.utils.errors import CheckpointError, ConfigError, exit_code_of
-from src.pair_sets import LOADER_KEYS
 from src.metrics import ERROR_R, ERROR_T, RMSE_R
+from src.pair_sets import LOADER_KEYS
+from src.run.resume import best_checkpoint
+from src.utils.errors import CheckpointError, ConfigError, exit_code_of
 from src.utils.paths import CONF_DIR, SHIPPED_DIR
 
 METRICS = (ERROR_R, ERROR_T, RMSE_R)
@@ -96,17 +97,6 @@ class Entry:
 
 
 # --- the run ---------------------------------------------------------------------------------------
-
-
-def best_checkpoint(run_dir: Path) -> Path | None:
-    """The checkpoint ``src.train`` tested (``metrics.json``), else the newest ``checkpoints/best-*.ckpt``."""
-    metrics = run_dir / "metrics.json"
-    if metrics.is_file():
-        recorded = json.loads(metrics.read_text()).get("checkpoint")
-        if recorded and Path(recorded).is_file():
-            return Path(recorded)
-    found = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
-    return found[-1] if found else None
 
 
 def find_run(outputs: Path) -> Path:
@@ -303,7 +293,6 @@ def pipeline_check_note(tidy: Any, mine: Entry, run: Run, card: dict[str, Any] |
 def grid_config(run: Run, overrides: Sequence[str]) -> DictConfig:
     """``benchmark_grid`` with ``+benchmark=demo``, the run's data and ``overrides``, on the run's test set."""
     from hydra import compose, initialize_config_dir
-
     from hydra.errors import HydraException
 
     try:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 import warnings
 
@@ -53,9 +54,13 @@ log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", message="You're resuming from a checkpoint that ended before the epoch ended")
 
 
+#: How PyTorch reports a tensor larger than memory, or than any memory (a huge ``model_scale``).
+_TOO_LARGE = re.compile(r"can't allocate memory|Storage size calculation overflowed|out of memory")
+
+
 def build_module(model_cfg: DictConfig) -> L.LightningModule:
     """The configured RegistrationModule; a value its network's constructor rejects (ValueError,
-    TypeError, e.g. an unknown ``mask_mode``) becomes one ConfigError line."""
+    TypeError, e.g. an unknown ``mask_mode``) or a network too large to allocate becomes one ConfigError line."""
     try:
         return hydra.utils.instantiate(model_cfg)
     except InstantiationException as err:
@@ -64,6 +69,9 @@ def build_module(model_cfg: DictConfig) -> L.LightningModule:
             cause = cause.__cause__
         if isinstance(cause, (ValueError, TypeError)):
             raise ConfigError(f"model: {model_cfg.network._target_} rejects its config: {cause}") from err
+        if isinstance(cause, (MemoryError, RuntimeError)) and _TOO_LARGE.search(str(cause)):
+            raise ConfigError(f"model: {model_cfg.network._target_} is too large to build ({str(cause).splitlines()[0]}): "
+                              "lower model_scale (its channel width)") from err
         raise
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from src.run.resume import own_last_checkpoint
+from src.run.resume import best_checkpoint, own_last_checkpoint
 from src.utils.errors import CheckpointError, ConfigError, exit_code_of
 
 PAPER_STEPS, PAPER_BATCH = 260_000, 64
@@ -149,11 +149,10 @@ def join_weights(folder: Path, target: Path) -> Path:
     return target
 
 
-def best_checkpoint(run_dir: Path) -> Path | None:
-    """The run's best checkpoint (the newest ``best-*.ckpt``), else its ``last.ckpt``."""
-    candidates = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
+def selected_checkpoint(run_dir: Path) -> Path | None:
+    """The run's best checkpoint (:func:`src.run.resume.best_checkpoint`), else its ``last.ckpt``."""
     last = own_last_checkpoint(run_dir)
-    return candidates[-1] if candidates else (last if last.is_file() else None)
+    return best_checkpoint(run_dir) or (last if last.is_file() else None)
 
 
 def projection(steps: pd.DataFrame) -> str:
@@ -181,7 +180,7 @@ def trial(out: Path, minutes: float, dry_run: bool, run_dir: Path, shard_bytes: 
     left = minutes * 60 - (time.perf_counter() - start) - 60  # a minute for the export
     code = train(plan, run_dir, left) if left > 0 else None
     exported = {}
-    for name, checkpoint in (("best", best_checkpoint(run_dir)), ("last", own_last_checkpoint(run_dir))):
+    for name, checkpoint in (("best", selected_checkpoint(run_dir)), ("last", own_last_checkpoint(run_dir))):
         if checkpoint is not None and checkpoint.is_file():
             exported[name] = [p.name for p in split_weights(checkpoint, out / f"weights_{name}", shard_bytes)]
     device = torch.cuda.get_device_name(0) if plan.device == "cuda" else "CPU (dry run)"

@@ -38,6 +38,18 @@ def own_last_checkpoint(run_dir: Path) -> Path:
     return run_dir / "checkpoints" / "last.ckpt"
 
 
+def best_checkpoint(run_dir: Path) -> Path | None:
+    """The checkpoint a run in ``run_dir`` selected: the one ``src.train`` tested (``metrics.json``), else the newest
+    ``checkpoints/best-*.ckpt``; None when it has neither."""
+    metrics = run_dir / "metrics.json"
+    if metrics.is_file():
+        recorded = json.loads(metrics.read_text()).get("checkpoint")
+        if recorded and Path(recorded).is_file():
+            return Path(recorded)
+    found = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
+
+
 def finished_record(cfg: DictConfig) -> Path | None:
     """For ``ckpt_path=last``: the run dir's ``metrics.json`` when the run there trained ``trainer.max_steps``
     and was tested (nothing to resume), else None."""

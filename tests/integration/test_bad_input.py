@@ -20,7 +20,7 @@ import src.train
 from src.utils.errors import CheckpointError, ConfigError
 from src.utils.files import remove_stale_temporaries, write_atomic
 from src.models.base import check_network
-from src.train import train
+from src.train import build_module, train
 from src.run.trainer import build_trainer
 from src.data.datamodule import check_pair_layout
 from src.validation import validate_config
@@ -155,6 +155,14 @@ def test_entry_points_stop_with_one_line(entry, override, message, tmp_path, cap
 def test_a_network_rejecting_its_config_is_one_line(tmp_path, cache):
     with pytest.raises(ConfigError, match=r"^model: src.models.omnet.OMNet rejects its config: mask_mode must be one of"):
         train(_tiny(cache, tmp_path, "model.network.mask_mode=foo"))
+
+
+@pytest.mark.parametrize("device", ["meta", "cpu"])  # meta: the size overflows; cpu: no memory holds it
+def test_a_network_too_large_to_build_is_one_line(device):
+    cfg = compose_config("model_scale=605398.0" if device == "meta" else "model_scale=100000.0")
+    with torch.device(device), pytest.raises(ConfigError, match=r"^model: src.models.omnet.OMNet is too large to build "
+                                                                 r"\(.*\): lower model_scale"):
+        build_module(cfg.model)
 
 
 def test_a_network_without_the_two_methods_is_one_line():

@@ -13,7 +13,6 @@ from benchmarks.demo import (
     IDENTITY_LABEL,
     Entry,
     Run,
-    best_checkpoint,
     data_overrides,
     find_run,
     load_run,
@@ -25,6 +24,7 @@ from benchmarks.demo import (
 from benchmarks.tables.latex_check import check_latex, tabular_rows, tabulars
 from src.eval import evaluate
 from src.models.pretrained import export
+from src.run.resume import best_checkpoint
 from src.train import train
 from tests.helpers.markdown import markdown_table
 from tests.helpers.registration_helpers import TINY, compose_config, tiny_config

@@ -24,7 +24,7 @@ def test_dry_run_times_the_step_measures_the_loader_trains_and_exports_shards(tm
     assert shards and all(p.stat().st_size < 2**20 + 2**16 for p in shards)  # 1 MB of tensors + the pickle's framing
     joined = gpu_trial.join_weights(out / "weights_best", tmp_path / "joined.ckpt")
     module = RegistrationModule.load_from_checkpoint(joined, map_location="cpu")
-    original = torch.load(gpu_trial.best_checkpoint(run), map_location="cpu", weights_only=False)["state_dict"]
+    original = torch.load(gpu_trial.selected_checkpoint(run), map_location="cpu", weights_only=False)["state_dict"]
     assert all(torch.equal(module.state_dict()[k], v) for k, v in original.items())
 
 

@@ -4,9 +4,9 @@ records its steps in both precisions."""
 import torch
 from torch import nn
 
+from benchmarks.speed.train_step import pair_batch
 from benchmarks.studies.precision.emulated import Bf16ProductsInFp32
 from benchmarks.studies.precision.fit_pairs import fit
-from benchmarks.speed.train_step import pair_batch
 
 
 def _step(module: nn.Module, x: torch.Tensor, emulate: bool) -> tuple[torch.Tensor, list[torch.Tensor]]:
@@ -81,3 +81,29 @@ def test_the_verdict_compares_the_bf16_mean_with_the_float32_seeds_range(tmp_pat
     assert main([_fits(tmp_path, [2.0, 12.0, 40.0])]) == 0  # mean 18, but the bf16 seeds' range holds the float32 mean
     assert markdown_table(capsys.readouterr().out)[1].iloc[0]["verdict"] == "same"
     assert main([str(tmp_path / "none.csv")]) == 2
+
+
+def test_the_timer_counts_every_operation_with_the_products_apart():
+    from benchmarks.studies.precision.projection import PRODUCT, TimedOps
+
+    a, b = torch.randn(64, 32), torch.randn(32, 16)
+    with TimedOps() as timed:
+        product = torch.mm(a, b)
+        total = (product + 1.0).sum()
+        emulated = torch.mm(a.bfloat16(), b.bfloat16())
+    assert timed.calls == 6 and set(timed.seconds) == {PRODUCT, "add", "sum", "_to_copy"}
+    assert emulated.dtype == torch.bfloat16 and torch.isfinite(total)
+    assert all(seconds >= 0 for seconds in timed.seconds.values())
+
+
+def test_the_projection_divides_only_the_product_time_by_the_ratio():
+    import math
+
+    from benchmarks.studies.precision.projection import project
+
+    # float32 step 10 s of which 8 s products; the bf16 step's other work 3 s; products 4x faster: 3 + 8 / 4 = 5 s
+    p = project(10.0, 8.0, 3.0, flops=4e9, mm32_gflops=2.0, ratio=4.0)
+    assert p["projected_s"] == 5.0 and p["speedup"] == 2.0
+    assert math.isclose(p["pct_of_bf16_mm"], 100 * 4e9 / 5.0 / 8e9)  # 4 GFLOP in 5 s against 4 x 2 GFLOP/s
+    free = project(10.0, 8.0, 3.0, flops=4e9, mm32_gflops=2.0, ratio=math.inf)
+    assert free["projected_s"] == 3.0 and math.isnan(free["pct_of_bf16_mm"])

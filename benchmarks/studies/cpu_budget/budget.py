@@ -30,12 +30,19 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable, Sequence
 
-from benchmarks.studies.cpu_budget.recipes import CPU_TRAINING_ENV, add_run_parser, code_version, run_each, train_logged
+from benchmarks.studies.cpu_budget.recipes import (
+    CPU_TRAINING_ENV,
+    add_run_parser,
+    code_version,
+    run_each,
+    train_logged,
+)
+from src.run.resume import best_checkpoint, own_last_checkpoint
 from src.utils.errors import ConfigError, exit_code_of
 from src.utils.paths import without_folder
 
@@ -225,12 +232,6 @@ def stage_command(stage: Stage, run_dir: Path, extra: list[str]) -> list[str]:
     return command + ([f"ckpt_path={last}"] if last.is_file() else [])
 
 
-def best_checkpoint(run_dir: Path) -> Path:
-    """The run's selected checkpoint (``best-<step>.ckpt``; the last one when the recipe selects none)."""
-    best = sorted((run_dir / "checkpoints").glob("best-*.ckpt"), key=lambda p: p.stat().st_mtime)
-    return best[-1] if best else run_dir / "checkpoints" / "last.ckpt"
-
-
 #: Planning composes configs (Hydra's global state) and times steps in this process: one method at a time.
 _PLANNING = threading.Lock()
 
@@ -259,7 +260,7 @@ def run_method(method: str, root: Path, budget_h: float, folder: str | None = No
             if code != 0:
                 return f"{method_dir.name}/{stage.name}: exit {code} (see {run_dir / 'train.log'}; run again to resume)"
             done.write_text(json.dumps({"stage": vars(stage), "command": " ".join(command[1:])}, indent=2))
-        extra = [f"model.network.feature_init={best_checkpoint(run_dir)}"]  # the next stage starts from these features
+        extra = [f"model.network.feature_init={best_checkpoint(run_dir) or own_last_checkpoint(run_dir)}"]  # the next stage starts from these features
     return f"{method_dir.name}: done"
 
 
@@ -330,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
             return
         if args.command == "beyond":
             folder = args.method + BEYOND
-            planner = lambda: plan_beyond(args.method, args.recipe, args.budget_h, args.init_weights)  # noqa: E731
+            planner = lambda: plan_beyond(args.method, args.recipe, args.budget_h, args.init_weights)
             run_each(args.method, METHODS, "methods", ("--budget-h", args.budget_h), 1,
                      lambda m: run_method(m, args.root, args.budget_h, folder, planner))
             if args.archive is not None:

@@ -13,7 +13,7 @@ import hydra
 import pytest
 import torch
 from hydra.errors import ConfigCompositionException, OverrideParseException
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from src.run.cli import describe_hydra_error
@@ -75,6 +75,7 @@ def _holds_the_contract(overrides: list[str], config_name: str = "config") -> No
 
 
 @given(key=st.sampled_from(KEYS), value=VALUES)
+@example(key="model_scale", value=605398.0)  # a network no memory holds
 def test_a_generated_value_of_any_key_validates_or_is_one_line(key, value):
     _holds_the_contract([f"{key}={_literal(value)}"])
 
