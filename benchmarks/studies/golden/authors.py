@@ -141,6 +141,18 @@ def idam(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np
         return _batched(pairs, dtype, run)
 
 
+def rpmnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """yewzijian/RPMNet's RPM-Net with the shipped RPM-Net checkpoint's weights, in eval mode, with its evaluation
+    iterations (:mod:`benchmarks.studies.golden.authors_rpmnet`), given the normals ours estimates."""
+    from benchmarks.studies.golden.authors_rpmnet import authors_estimate, authors_network
+
+    ours, settings = shipped_network("rpmnet", dtype)
+    if settings["normals"] != "estimated":
+        raise ConfigError(f"the shipped RPM-Net checkpoint takes normals {settings['normals']!r}: the golden pairs carry none")
+    theirs = authors_network(checkout, ours, settings)
+    return _batched(pairs, dtype, lambda src, ref: authors_estimate(theirs, ours, src, ref, settings["num_iters"]).double().numpy())
+
+
 def learning3d_pointnetlk(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """vinits5/learning3d's PointNetLK (``models/pointnetlk.py``, PointNet(emb_dims=1024, use_bn=True)) with the
     published ``learning3d_pointnetlk.t7``, ``forward(template=ref, source=src, maxiter=10)``; the estimate is its
@@ -236,6 +248,7 @@ REFERENCES: dict[str, Reference] = {
     "dcp_v1": Reference("WangYueFt/dcp", "official:dcp_v1", dcp_v1),
     "omnet": Reference("hxwork/OMNet_Pytorch", "omnet_real_airplane_ts_prnet", omnet),
     "idam": Reference("jiahaowork/idam", "idam_real_airplane_ts_prnet", idam),
+    "rpmnet": Reference("yewzijian/RPMNet", "rpmnet_real_airplane_ts_prnet", rpmnet),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},

@@ -21,6 +21,7 @@ METHODS: dict[str, tuple[str, dict[str, str]]] = {
     "dcp_v1": ("dcp", {"weights": "official:dcp_v1"}),
     "omnet": ("omnet", {}),  # the shipped checkpoints
     "idam": ("idam", {}),
+    "rpmnet": ("rpmnet", {}),
     **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
 }
 BATCH = 8
