@@ -141,6 +141,17 @@ def idam(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np
         return _batched(pairs, dtype, run)
 
 
+def prnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """WangYueFt/prnet's PRNet with the shipped PRNet checkpoint's weights, its layers at the checkpoint's width,
+    drawing our Gumbel noise as ours does (:mod:`benchmarks.studies.golden.authors_prnet`)."""
+    from benchmarks.studies.golden.authors_prnet import authors_network, pose, same_noise
+
+    ours, network = shipped_network("prnet", dtype)
+    model, theirs = authors_network(checkout, ours, network, dtype)
+    with same_noise(model, dtype):
+        return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
+
+
 def learning3d_pointnetlk(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """vinits5/learning3d's PointNetLK (``models/pointnetlk.py``, PointNet(emb_dims=1024, use_bn=True)) with the
     published ``learning3d_pointnetlk.t7``, ``forward(template=ref, source=src, maxiter=10)``; the estimate is its
@@ -236,6 +247,7 @@ REFERENCES: dict[str, Reference] = {
     "dcp_v1": Reference("WangYueFt/dcp", "official:dcp_v1", dcp_v1),
     "omnet": Reference("hxwork/OMNet_Pytorch", "omnet_real_airplane_ts_prnet", omnet),
     "idam": Reference("jiahaowork/idam", "idam_real_airplane_ts_prnet", idam),
+    "prnet": Reference("WangYueFt/prnet", "prnet_real_airplane_ts_prnet", prnet),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},

@@ -1,7 +1,8 @@
 """The framework on the golden pairs: each golden method's registrator, ``(pairs, dtype) -> (P, 4, 4)``.
 
 A learned method in float32 takes the product's own path (:meth:`Registrator.register_batch`); in float64 the
-registrator's loaded network runs in double precision (the same weights and code, another dtype). A classical
+registrator's loaded network runs in double precision (the same weights and code, another dtype), each batch
+after the registrator's seed as ``register_batch`` (the draws of a network that samples at test). A classical
 method registers pair by pair (:meth:`Registrator.register`, float64 whatever ``dtype``), Open3D on one thread
 (:func:`benchmarks.studies.golden.library.one_thread`).
 """
@@ -12,6 +13,7 @@ import numpy as np
 import torch
 
 from baselines import get_registrator
+from benchmarks.studies.golden.authors_prnet import NOISE_SEED
 from benchmarks.studies.golden.library import one_thread
 
 #: golden method → (method key, registrator options).
@@ -21,6 +23,7 @@ METHODS: dict[str, tuple[str, dict[str, str]]] = {
     "dcp_v1": ("dcp", {"weights": "official:dcp_v1"}),
     "omnet": ("omnet", {}),  # the shipped checkpoints
     "idam": ("idam", {}),
+    "prnet": ("prnet", {"seed": NOISE_SEED}),  # the seed of its Gumbel noise, as the golden file's
     **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
 }
 BATCH = 8
@@ -42,5 +45,7 @@ def estimates(method: str, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> 
     with torch.no_grad():
         for i in range(0, len(pairs["src"]), BATCH):
             src, ref = (torch.from_numpy(pairs[k][i:i + BATCH]).to(dtype) for k in ("src", "ref"))
-            out.append(module(src, ref).double().numpy())
+            with torch.random.fork_rng():
+                torch.manual_seed(registrator.config.seed)  # as register_batch: PRNet's noise at test
+                out.append(module(src, ref).double().numpy())
     return np.concatenate(out)
