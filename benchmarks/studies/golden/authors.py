@@ -144,7 +144,11 @@ def idam(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np
 def prnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """WangYueFt/prnet's PRNet with the shipped PRNet checkpoint's weights, its layers at the checkpoint's width,
     drawing our Gumbel noise as ours does (:mod:`benchmarks.studies.golden.authors_prnet`)."""
-    from benchmarks.studies.golden.authors_prnet import authors_network, pose, same_noise
+    from benchmarks.studies.golden.authors_prnet import (
+        authors_network,
+        pose,
+        same_noise,
+    )
 
     ours, network = shipped_network("prnet", dtype)
     model, theirs = authors_network(checkout, ours, network, dtype)

@@ -37,13 +37,13 @@ NOISE_SEED = 0
 LITERALS = (64, 128, 256, 512)
 
 
-def _width_nn(width: float, keep: int) -> types.SimpleNamespace:
+def _width_nn(width: float) -> types.SimpleNamespace:
     """``torch.nn`` with Conv2d, BatchNorm2d, Linear and BatchNorm1d built at ``width`` times the :data:`LITERALS`
-    (``keep``, their ``n_emb_dims`` argument, already ours)."""
+    (other channel counts, their ``n_emb_dims`` argument among them, as given)."""
     from src.models.base import scaled
 
     def w(c: int) -> int:
-        return scaled(c, width) if c in LITERALS and c != keep else c
+        return scaled(c, width) if c in LITERALS else c
 
     namespace = types.SimpleNamespace(**{k: getattr(nn, k) for k in dir(nn) if not k.startswith("_")})
     namespace.Conv2d = lambda c_in, c_out, *a, **k: nn.Conv2d(w(c_in), w(c_out), *a, **k)
@@ -67,11 +67,12 @@ def build_authors(model: types.ModuleType, network: dict) -> nn.Module:
     args = authors_args(network)
     args.n_emb_dims = scaled(network["emb_dims"], width, network["n_heads"])
     args.n_ff_dims = scaled(network["ff_dims"], width)
+    if width != 1.0 and args.n_emb_dims in LITERALS:
+        raise ConfigError(f"width {width}: the embedding size {args.n_emb_dims} is one of their literals {LITERALS}, "
+                          "which are scaled")
     theirs = model.PRNet(args)
     if width != 1.0:
-        if args.n_emb_dims in LITERALS:
-            raise ConfigError(f"width {width}: the embedding size {args.n_emb_dims} is one of their literals {LITERALS}")
-        torch_nn, model.nn = model.nn, _width_nn(width, args.n_emb_dims)
+        torch_nn, model.nn = model.nn, _width_nn(width)
         try:
             theirs.acpnet.emb_nn = model.DGCNN(n_emb_dims=args.n_emb_dims)
             theirs.acpnet.temp_net = model.TemperatureNet(args)

@@ -17,7 +17,7 @@ from benchmarks.studies.golden.authors_prnet import NOISE_SEED
 from benchmarks.studies.golden.library import one_thread
 
 #: golden method → (method key, registrator options).
-METHODS: dict[str, tuple[str, dict[str, str]]] = {
+METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "learning3d_pointnetlk": ("pointnetlk", {"weights": "official:learning3d_pointnetlk"}),
     "pointnetlk_revisited": ("pointnetlk_revisited", {"weights": "official:pointnetlk_revisited"}),
     "dcp_v1": ("dcp", {"weights": "official:dcp_v1"}),
