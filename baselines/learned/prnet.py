@@ -7,7 +7,8 @@ Network (paper §3–4 and the official code, github.com/WangYueFt/prnet, defaul
   features [x_j, x_i]), layers 64-64-128-256 with BatchNorm + LeakyReLU(0.2), concatenated and mapped
   to ``emb_dims`` = 512 (:class:`~baselines.learned.common.correspondence.DGCNN`, ``dynamic=True``);
 * attention: DCP's transformer pointer (1 block, 4 heads, feed-forward 1024 with LeakyReLU 0.2,
-  dropout 0), Φ = F + φ;
+  dropout 0) with the code's LayerNorm (unbiased std, ε added to it: model.py:159-169; PyTorch's moves
+  the hard Gumbel samples, and with them the estimates, by degrees), Φ = F + φ;
 * keypoints: the ``num_keypoints`` = 512 points of each cloud with the largest ‖Φ‖₂ (768 inputs);
 * temperature: an MLP (512→128→128→128→1, BatchNorm + ReLU, final ReLU) on |mean Φ_X − mean Φ_Y| over
   the keypoints, clamped to [1/100, 100];
@@ -25,8 +26,8 @@ literally). There is no separate keypoint loss: the keypoint detector is learned
 Training recipe (official ``main.py``: optimiser, schedule, batch, epochs, checkpoint selection):
 ``conf/recipe/prnet.yaml``.
 
-Deviations: channel-last Linear layers instead of 1×1 convolutions; PyTorch's LayerNorm (see
-:mod:`baselines.learned.dcp`); batched float64 SVD with a sign(det) reflection fix; the Gumbel noise is
+Deviations: channel-last Linear layers instead of 1×1 convolutions; batched float64 SVD with a sign(det)
+reflection fix and uniform weights 1/(K + 1e-5) (the code's 1/K: translations ~1e-8 apart); the Gumbel noise is
 drawn at evaluation too, as the official test loop does (``deterministic_eval=True`` uses the plain
 argmax instead — the hard sample's value does not depend on the temperature); with fewer points than
 ``num_keypoints`` all points are keypoints; ``width`` scales every hidden channel count (1.0 = paper).
@@ -51,6 +52,9 @@ from src.geometry import se3_apply
 from src.models.base import scaled
 
 SAMPLERS = ("gumbel_softmax", "softmax")
+#: The transformer's LayerNorm: the official code's (unbiased std, epsilon added to it: WangYueFt/prnet model.py:159-169)
+#: or PyTorch's ``nn.LayerNorm`` (with which checkpoints written before this option were trained).
+LAYER_NORMS = ("authors", "torch")
 
 
 class PRNet(nn.Module):
@@ -73,8 +77,11 @@ class PRNet(nn.Module):
         cycle_weight: float = 0.1,
         feature_alignment_weight: float = 0.1,
         width: float = 1.0,
+        layer_norm: str = "authors",
     ) -> None:
         super().__init__()
+        if layer_norm not in LAYER_NORMS:
+            raise ValueError(f"layer_norm must be one of {LAYER_NORMS}, got {layer_norm!r}")
         if sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
         if num_iters < 1:
@@ -84,7 +91,8 @@ class PRNet(nn.Module):
         self.sampler, self.deterministic_eval = sampler, deterministic_eval
         self.discount, self.cycle_weight, self.feature_alignment_weight = discount, cycle_weight, feature_alignment_weight
         self.embedding = DGCNN([scaled(c, width) for c in (64, 64, 128, 256)], emb, k=k, dynamic=True, negative_slope=0.2)
-        self.pointer = AttentionPointer(emb, n_blocks, n_heads, scaled(ff_dims, width), dropout, negative_slope=0.2)
+        self.pointer = AttentionPointer(emb, n_blocks, n_heads, scaled(ff_dims, width), dropout, negative_slope=0.2,
+                                        authors_norm=layer_norm == "authors")
         self.temperature_net = MLP([emb, hidden, hidden, hidden, 1], last_activation=False, bias=True)
 
     @property

@@ -1,11 +1,16 @@
 """The golden-file study's helpers (benchmarks/studies/golden): the rotation difference, golden files' round
-trip, the spread's summary and report, and its one-line errors."""
+trip, the spread's summary and report, its one-line errors, and PRNet's authors' network at our width (against
+WangYueFt/prnet only where PRNET_AUTHORS_DIR names a checkout of it)."""
+
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
-from benchmarks.studies.golden import golden_file, spread
+from benchmarks.studies.golden import authors_prnet, golden_file, spread
 from benchmarks.studies.golden.generate import main as generate_main
 from src.utils.errors import ConfigError
 
@@ -59,3 +64,33 @@ def test_bad_arguments_are_one_line_errors(capsys):
         spread._checkouts(["dcp_v1"])
     assert generate_main(["dcp_v1"]) == 2
     assert capsys.readouterr().err.strip() == "error: dcp_v1: --authors CHECKOUT (a clone of WangYueFt/dcp) is needed"
+
+
+def test_prnet_authors_literals_are_scaled_as_ours_and_other_channels_kept():
+    namespace = authors_prnet._width_nn(0.0625)
+    assert namespace.Conv2d(6, 64, kernel_size=1).weight.shape[:2] == (4, 6)  # their DGCNN's conv1 (model.py:286)
+    assert namespace.Conv2d(512, 32, kernel_size=1).weight.shape[:2] == (32, 32)  # conv5 into n_emb_dims
+    assert namespace.Linear(128, 1).weight.shape == (1, 8) and namespace.BatchNorm2d(256).num_features == 16
+    assert namespace.ReLU is torch.nn.ReLU
+
+
+def test_prnet_authors_network_refuses_what_their_code_cannot_be():
+    from benchmarks.studies.lockstep.prnet import AUTHORS_ARGS, FIXED
+
+    network = {**{k: v for k, (_, v) in AUTHORS_ARGS.items()}, **FIXED}  # main.py's defaults
+    with pytest.raises(ConfigError, match="their code has"):
+        authors_prnet.build_authors(None, {**network, "width": 1.0, "k": 16})
+    with pytest.raises(ConfigError, match="embedding size 64 is one of their literals"):
+        authors_prnet.build_authors(None, {**network, "width": 0.125})
+
+
+@pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
+@pytest.mark.skipif(not os.environ.get("PRNET_AUTHORS_DIR"),
+                    reason="PRNET_AUTHORS_DIR (a checkout of WangYueFt/prnet) not set: their side is not checked")
+def test_prnet_authors_code_gives_its_golden_file(tmp_path):
+    from benchmarks.studies.golden.authors import prnet
+    from benchmarks.studies.golden.pairs import golden_pairs, prepare_cache
+
+    pairs = {k: v[:8] for k, v in golden_pairs(prepare_cache(tmp_path)).items()}  # one batch
+    estimates = prnet(Path(os.environ["PRNET_AUTHORS_DIR"]), pairs, torch.float64)
+    np.testing.assert_array_equal(estimates, golden_file.read_golden("prnet")["transforms"][:8])

@@ -9,7 +9,8 @@ Everything works on channel-last tensors: points and per-point features are (B, 
   Linear of an edge convolution is computed per point and gathered (:func:`edge_linear`), the same
   function at 1/k of the cost.
 * :class:`AttentionPointer` — DCP's "Pointer" φ: a one-block transformer encoder–decoder with
-  pre-norm residual sub-layers, shared by both directions, returning φ(X, Y) and φ(Y, X).
+  pre-norm residual sub-layers, shared by both directions, returning φ(X, Y) and φ(Y, X);
+  :class:`AuthorsLayerNorm` is the official code's LayerNorm.
 * :func:`matching_logits`, :func:`soft_correspondence_svd` — DCP's soft pointer + SVD head, on top of
   :func:`~baselines.learned.common.procrustes.weighted_procrustes`.
 * :func:`sinkhorn` — RPMNet's log-domain Sinkhorn normalisation with a slack row and column.
@@ -167,12 +168,22 @@ class _Attention(nn.Module):
         return self.out(y.transpose(1, 2).reshape(b, n, d))
 
 
+class AuthorsLayerNorm(nn.LayerNorm):
+    """The official DCP/PRNet code's LayerNorm (PRNet ``model.py:159-169``): ``weight·(x − mean)/(std + ε) + bias``
+    with the unbiased std and ε added to it; ``nn.LayerNorm`` takes the biased variance with ε inside the square
+    root. The same parameters (``weight``, ``bias``) as ``nn.LayerNorm``."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.weight * (x - x.mean(-1, keepdim=True)) / (x.std(-1, keepdim=True) + self.eps) + self.bias
+
+
 class _EncoderLayer(nn.Module):
-    def __init__(self, d_model: int, n_heads: int, ff_dims: int, dropout: float, negative_slope: float) -> None:
+    def __init__(self, d_model: int, n_heads: int, ff_dims: int, dropout: float, negative_slope: float,
+                 norm: type[nn.LayerNorm]) -> None:
         super().__init__()
         self.self_attn = _Attention(d_model, n_heads, dropout)
         self.ff = _FeedForward(d_model, ff_dims, dropout, negative_slope)
-        self.norms = nn.ModuleList(nn.LayerNorm(d_model, eps=1e-6) for _ in range(2))
+        self.norms = nn.ModuleList(norm(d_model, eps=1e-6) for _ in range(2))
 
     def forward(self, x: Tensor) -> Tensor:
         h = self.norms[0](x)
@@ -181,12 +192,13 @@ class _EncoderLayer(nn.Module):
 
 
 class _DecoderLayer(nn.Module):
-    def __init__(self, d_model: int, n_heads: int, ff_dims: int, dropout: float, negative_slope: float) -> None:
+    def __init__(self, d_model: int, n_heads: int, ff_dims: int, dropout: float, negative_slope: float,
+                 norm: type[nn.LayerNorm]) -> None:
         super().__init__()
         self.self_attn = _Attention(d_model, n_heads, dropout)
         self.cross_attn = _Attention(d_model, n_heads, dropout)
         self.ff = _FeedForward(d_model, ff_dims, dropout, negative_slope)
-        self.norms = nn.ModuleList(nn.LayerNorm(d_model, eps=1e-6) for _ in range(3))
+        self.norms = nn.ModuleList(norm(d_model, eps=1e-6) for _ in range(3))
 
     def forward(self, x: Tensor, memory: Tensor) -> Tensor:
         h = self.norms[0](x)
@@ -202,17 +214,18 @@ class AttentionPointer(nn.Module):
     decoded against the other cloud's encoded features, with the same weights in both directions.
     Pre-norm residual sub-layers and a final LayerNorm in the encoder and the decoder, as the
     official DCP/PRNet code; ``negative_slope`` is the feed-forward LeakyReLU slope (0 = ReLU, DCP;
-    0.2 for PRNet).
+    0.2 for PRNet); ``authors_norm``: the code's LayerNorm (:class:`AuthorsLayerNorm`), else ``nn.LayerNorm``.
     """
 
     def __init__(self, d_model: int = 512, n_blocks: int = 1, n_heads: int = 4, ff_dims: int = 1024,
-                 dropout: float = 0.0, negative_slope: float = 0.0) -> None:
+                 dropout: float = 0.0, negative_slope: float = 0.0, authors_norm: bool = False) -> None:
         super().__init__()
-        args = (d_model, n_heads, ff_dims, dropout, negative_slope)
+        norm = AuthorsLayerNorm if authors_norm else nn.LayerNorm
+        args = (d_model, n_heads, ff_dims, dropout, negative_slope, norm)
         self.encoder = nn.ModuleList(_EncoderLayer(*args) for _ in range(n_blocks))
         self.decoder = nn.ModuleList(_DecoderLayer(*args) for _ in range(n_blocks))
-        self.encoder_norm = nn.LayerNorm(d_model, eps=1e-6)
-        self.decoder_norm = nn.LayerNorm(d_model, eps=1e-6)
+        self.encoder_norm = norm(d_model, eps=1e-6)
+        self.decoder_norm = norm(d_model, eps=1e-6)
 
     def attend(self, x: Tensor, other: Tensor) -> Tensor:
         """φ(x, other): ``other`` encoded, ``x`` decoded against it."""

@@ -45,21 +45,11 @@ def _batched(pairs: dict[str, np.ndarray], dtype: torch.dtype, run: Callable[[Te
 def dcp_v1(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """WangYueFt/dcp's DCP-v1 (main.py's flags: dgcnn, identity pointer, svd head, emb_dims 512) with the
     published ``dcp_v1.t7``; ``forward(src, tgt)`` on (B, 3, N) returns R_ab, t_ab (model.py:454-470)."""
-    from benchmarks.studies.lockstep.harness import cuda_on_cpu
-    from benchmarks.studies.lockstep.prnet import _load, cpu_torch
+    from benchmarks.studies.lockstep.harness import load_authors_model
+    from benchmarks.studies.lockstep.prnet import cpu_torch
     from src.utils.paths import shared_path
 
-    if not (checkout / "model.py").is_file() or not (checkout / "util.py").is_file():
-        raise ConfigError(f"--authors {checkout}: no model.py/util.py (a checkout of WangYueFt/dcp is needed)")
-    cuda_on_cpu()
-    import sys
-
-    saved = sys.modules.get("util")
-    sys.modules["util"] = _load("dcp_authors_util", checkout / "util.py")  # model.py:16: from util import quat2mat
-    try:
-        model = _load("dcp_authors_model", checkout / "model.py")
-    finally:
-        sys.modules.pop("util") if saved is None else sys.modules.__setitem__("util", saved)
+    model = load_authors_model(checkout, "WangYueFt/dcp", "dcp")  # model.py:16: from util import quat2mat
     model.torch = cpu_torch()  # model.py:56: torch.device('cuda')
     net = model.DCP(Namespace(emb_nn="dgcnn", pointer="identity", head="svd", emb_dims=512, cycle=False,
                               n_blocks=1, n_heads=4, ff_dims=1024, dropout=0.0))
@@ -151,6 +141,19 @@ def rpmnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> 
         raise ConfigError(f"the shipped RPM-Net checkpoint takes normals {settings['normals']!r}: the golden pairs carry none")
     theirs = authors_network(checkout, ours, settings)
     return _batched(pairs, dtype, lambda src, ref: authors_estimate(theirs, ours, src, ref, settings["num_iters"]).double().numpy())
+def prnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """WangYueFt/prnet's PRNet with the shipped PRNet checkpoint's weights, its layers at the checkpoint's width,
+    drawing our Gumbel noise as ours does (:mod:`benchmarks.studies.golden.authors_prnet`)."""
+    from benchmarks.studies.golden.authors_prnet import (
+        authors_network,
+        pose,
+        same_noise,
+    )
+
+    ours, network = shipped_network("prnet", dtype)
+    model, theirs = authors_network(checkout, ours, network, dtype)
+    with same_noise(model, dtype):
+        return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
 
 
 def learning3d_pointnetlk(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
@@ -249,6 +252,7 @@ REFERENCES: dict[str, Reference] = {
     "omnet": Reference("hxwork/OMNet_Pytorch", "omnet_real_airplane_ts_prnet", omnet),
     "idam": Reference("jiahaowork/idam", "idam_real_airplane_ts_prnet", idam),
     "rpmnet": Reference("yewzijian/RPMNet", "rpmnet_real_airplane_ts_prnet", rpmnet),
+    "prnet": Reference("WangYueFt/prnet", "prnet_real_airplane_ts_prnet", prnet),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},

@@ -1,7 +1,8 @@
 """The framework on the golden pairs: each golden method's registrator, ``(pairs, dtype) -> (P, 4, 4)``.
 
 A learned method in float32 takes the product's own path (:meth:`Registrator.register_batch`); in float64 the
-registrator's loaded network runs in double precision (the same weights and code, another dtype). A classical
+registrator's loaded network runs in double precision (the same weights and code, another dtype), each batch
+after the registrator's seed as ``register_batch`` (the draws of a network that samples at test). A classical
 method registers pair by pair (:meth:`Registrator.register`, float64 whatever ``dtype``), Open3D on one thread
 (:func:`benchmarks.studies.golden.library.one_thread`).
 """
@@ -12,16 +13,18 @@ import numpy as np
 import torch
 
 from baselines import get_registrator
+from benchmarks.studies.golden.authors_prnet import NOISE_SEED
 from benchmarks.studies.golden.library import one_thread
 
 #: golden method → (method key, registrator options).
-METHODS: dict[str, tuple[str, dict[str, str]]] = {
+METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "learning3d_pointnetlk": ("pointnetlk", {"weights": "official:learning3d_pointnetlk"}),
     "pointnetlk_revisited": ("pointnetlk_revisited", {"weights": "official:pointnetlk_revisited"}),
     "dcp_v1": ("dcp", {"weights": "official:dcp_v1"}),
     "omnet": ("omnet", {}),  # the shipped checkpoints
     "idam": ("idam", {}),
     "rpmnet": ("rpmnet", {}),
+    "prnet": ("prnet", {"seed": NOISE_SEED}),  # the seed of its Gumbel noise, as the golden file's
     **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
 }
 BATCH = 8
@@ -39,9 +42,23 @@ def estimates(method: str, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> 
         return np.concatenate([registrator.register_batch(pairs["src"][i:i + BATCH], pairs["ref"][i:i + BATCH])
                                for i in range(0, len(pairs["src"]), BATCH)])
     module = registrator.module.to(dtype)
+    if method == "prnet":
+        _authors_layer_norm(module)
     out = []
     with torch.no_grad():
         for i in range(0, len(pairs["src"]), BATCH):
             src, ref = (torch.from_numpy(pairs[k][i:i + BATCH]).to(dtype) for k in ("src", "ref"))
-            out.append(module(src, ref).double().numpy())
+            with torch.random.fork_rng():
+                torch.manual_seed(registrator.config.seed)  # as register_batch: PRNet's noise at test
+                out.append(module(src, ref).double().numpy())
     return np.concatenate(out)
+
+
+def _authors_layer_norm(module: torch.nn.Module) -> None:
+    """The official code's LayerNorm (PRNet's default, ``layer_norm=authors``) in place of ``nn.LayerNorm`` (the
+    shipped PRNet checkpoint records ``layer_norm=torch``, how it was trained): the golden file holds the code's."""
+    from baselines.learned.common.correspondence import AuthorsLayerNorm
+
+    for layer in module.modules():
+        if type(layer) is torch.nn.LayerNorm:
+            layer.__class__ = AuthorsLayerNorm  # the same parameters and state

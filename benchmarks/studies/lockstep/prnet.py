@@ -263,26 +263,17 @@ def _same_noise(authors: types.ModuleType) -> Iterator[Callable[[], None]]:
         del authors.torch.topk
 
 
-def _their_layer_norm(norm: nn.LayerNorm, x: Tensor) -> Tensor:
-    """Their LayerNorm (model.py:166-169): the unbiased std, ε added to it."""
-    return norm.weight * (x - x.mean(-1, keepdim=True)) / (x.std(-1, keepdim=True) + norm.eps) + norm.bias
-
-
-#: Ours's two deviations from theirs, each removable in the start check by :func:`_ours_as_theirs`.
-DEVIATIONS = ("layer_norm", "svd_weights")
+#: Ours's deviation from theirs, removable in the start check by :func:`_ours_as_theirs` (their LayerNorm,
+#: model.py:159-169, is ours: ``baselines.learned.common.correspondence.AuthorsLayerNorm``).
+DEVIATIONS = ("svd_weights",)
 
 
 @contextlib.contextmanager
 def _ours_as_theirs(net: nn.Module, deviations: tuple[str, ...] = DEVIATIONS) -> Iterator[None]:
-    """``net`` (a copy of ours) computing ``deviations`` as theirs: ``layer_norm`` their LayerNorm (model.py:166-169,
-    ours PyTorch's); ``svd_weights`` their uniform SVD weights 1/K (their means, model.py:448-468; ours 1/(K + 1e-5),
-    the ε of ``soft_correspondence_svd``)."""
+    """``net`` (a copy of ours) computing ``deviations`` as theirs: ``svd_weights`` their uniform SVD weights 1/K
+    (their means, model.py:448-468; ours 1/(K + 1e-5), the ε of ``soft_correspondence_svd``)."""
     import baselines.learned.prnet as prnet
 
-    if "layer_norm" in deviations:
-        for module in net.modules():
-            if isinstance(module, nn.LayerNorm):
-                module.forward = functools.partial(_their_layer_norm, module)
     solve = prnet.soft_correspondence_svd
     if "svd_weights" in deviations:
         prnet.soft_correspondence_svd = functools.partial(solve, eps=0.0)
@@ -366,10 +357,9 @@ def check_same_start(pair: PRNetPair, batch: dict[str, Tensor], out: Path) -> No
     """Copies of both in float64 on the first batch's first :data:`CHECK_PAIRS` pairs, max |ours − theirs|.
 
     ``eval`` and ``train``: both draw the same Gumbel noise (our sampler in both from one reseeded generator,
-    their keypoints sorted as ours) and ours computes its two deviations as theirs (their LayerNorm, model.py:166-169;
-    their exact uniform SVD weights): the same function, checked — ``eval`` embeddings, pointer, per-iteration steps
-    and disparities, pose; ``train`` loss, every gradient, pose. ``train_our_layer_norm``, ``train_our_svd_weights``:
-    the same with one deviation of ours kept (its size). ``train_own_noise``: each its own sampler after the same
+    their keypoints sorted as ours) and ours computes its deviation as theirs (their exact uniform SVD weights): the
+    same function, checked — ``eval`` embeddings, pointer, per-iteration steps and disparities, pose; ``train`` loss,
+    every gradient, pose. ``train_our_svd_weights``: the same with ours's deviation kept (its size). ``train_own_noise``: each its own sampler after the same
     seed, as the lockstep trains: their draws fall elsewhere (``exponential_`` vs ``rand``, unsorted keypoints), so
     this one differs.
     Required (else ConfigError): ``eval`` iteration 1 ≤ 1e-8; ``train`` loss and gradients ≤ 1e-6 relative."""
@@ -377,8 +367,7 @@ def check_same_start(pair: PRNetPair, batch: dict[str, Tensor], out: Path) -> No
         double = as_double({k: v[:CHECK_PAIRS] if torch.is_tensor(v) else v for k, v in batch.items()})
         result = {"eval": _eval_pass(pair, double),
                   "train": _train_pass(pair, double),
-                  "train_our_layer_norm": _train_pass(pair, double, as_theirs=("svd_weights",)),
-                  "train_our_svd_weights": _train_pass(pair, double, as_theirs=("layer_norm",)),
+                  "train_our_svd_weights": _train_pass(pair, double, as_theirs=()),
                   "train_own_noise": _train_pass(pair, double, same_noise=False)}
     iteration1 = ("embedding", "pointer", "step_ab_iter1", "step_ba_iter1", "disparity_iter1")
     eval_diff = max(result["eval"][k] for k in iteration1)

@@ -5,7 +5,8 @@ the framework's seeded data pipeline; a change that moves any method's estimate 
 
 float64 estimates must match pair for pair within :data:`FLOAT64_DEGREES` (rotation) and :data:`FLOAT64_TRANSLATION`.
 float32 ones (the product's own path) within a per-method tolerance measured across math-library instruction paths
-(benchmarks/results/float32_spread.md): rounding alone moves them that far from one CPU to another.
+(benchmarks/results/float32_spread.md): rounding alone moves them that far from one CPU to another (PRNet's by up
+to 177°: FLOAT32_NOT_COMPARABLE).
 """
 
 from pathlib import Path
@@ -46,6 +47,10 @@ FLOAT64_OWN = {"learning3d_pointnetlk": (1e-3, 1e-5)}
 #: when broken the other way, rounded up.
 FLOAT32_DEGREES = {"dcp_v1": 4.0, "idam": 4.0, "omnet": 5e-5, "learning3d_pointnetlk": 0.05, "pointnetlk_revisited": 2e-4,
                    "rpmnet": 2e-3}
+#: Learned methods whose float32 estimates cannot be held to their golden file pair for pair: PRNet's hard Gumbel
+#: samples flip with float32 rounding, and its shipped checkpoint's estimates move by up to 177° between
+#: instruction paths (benchmarks/results/float32_spread.md); float64 holds it to FLOAT64_DEGREES.
+FLOAT32_NOT_COMPARABLE = {"prnet"}
 METHODS = sorted(REFERENCES)
 LEARNED = sorted(m for m in METHODS if not REFERENCES[m].library)
 
@@ -69,7 +74,7 @@ def pairs(tmp_path_factory) -> dict[str, np.ndarray]:
 def test_every_reference_has_its_golden_file_and_its_method():
     assert sorted(p.stem for p in Path(GOLDEN_DIR).glob("*.npz")) == METHODS
     assert set(ours.METHODS) >= set(METHODS)
-    assert sorted(FLOAT32_DEGREES) == LEARNED
+    assert sorted([*FLOAT32_DEGREES, *FLOAT32_NOT_COMPARABLE]) == LEARNED
     for method in METHODS:
         golden = read_golden(method)
         assert golden["method"] == method and golden["dtype"] == "float64"
@@ -99,7 +104,7 @@ def test_float64_matches_the_reference_pair_for_pair(pairs, method):
     assert translation_difference(estimates, golden).max() < translation
 
 
-@pytest.mark.parametrize("method", _params(LEARNED))
+@pytest.mark.parametrize("method", _params(sorted(FLOAT32_DEGREES)))
 def test_float32_is_within_the_measured_spread(pairs, method):
     golden = read_golden(method)["transforms"]
     rotation = rotation_difference_deg(ours.estimates(method, pairs, torch.float32), golden)

@@ -8,6 +8,7 @@ import torch
 from baselines.learned.common.correspondence import (
     DGCNN,
     AttentionPointer,
+    AuthorsLayerNorm,
     EdgeConv,
     edge_features,
     edge_linear,
@@ -155,6 +156,21 @@ def test_dgcnn_and_pointer_shapes_and_gradients(dynamic):
     # permuting the points permutes the features
     perm = torch.randperm(50)
     torch.testing.assert_close(dgcnn.eval()(pts[:, perm]), dgcnn(pts)[:, perm], atol=1e-5, rtol=0)
+
+
+def test_the_authors_layer_norm_divides_by_the_unbiased_std_plus_eps_and_keeps_the_state_dict():
+    """DCP/PRNet's LayerNorm (PRNet model.py:159-169): (x - mean) / (std + eps), std unbiased; nn.LayerNorm's
+    biased variance gives sqrt(n / (n - 1)) times it."""
+    x = torch.randn(2, 5, 8, dtype=torch.float64) * 3 + 1
+    theirs, torchs = AuthorsLayerNorm(8, eps=0.0).double(), torch.nn.LayerNorm(8, eps=0.0).double()
+    torch.testing.assert_close(theirs(x).std(-1), torch.ones(2, 5, dtype=torch.float64))
+    torch.testing.assert_close(torchs(x), theirs(x) * math.sqrt(8 / 7))
+    with_eps = AuthorsLayerNorm(8, eps=0.5).double()
+    torch.testing.assert_close(with_eps(x), (x - x.mean(-1, keepdim=True)) / (x.std(-1, keepdim=True) + 0.5))
+    assert list(theirs.state_dict()) == list(torchs.state_dict())  # checkpoints of either load into the other
+    pointer = AttentionPointer(8, n_heads=2, ff_dims=16, authors_norm=True)
+    norms = [m for m in pointer.modules() if isinstance(m, torch.nn.LayerNorm)]
+    assert len(norms) == 7 and all(isinstance(m, AuthorsLayerNorm) for m in norms)
 
 
 def test_mlp_group_norm_paths_agree_and_edgeconv_modes():

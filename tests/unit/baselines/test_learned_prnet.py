@@ -9,6 +9,7 @@ from baselines.learned.prnet import PRNet
 from src.compose import compose_model_config
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
+from src.utils.paths import SHIPPED_DIR
 from tests.helpers.registration_helpers import seeded_losses_before_after
 from tests.helpers.registration_helpers import reload_via_checkpoint
 from tests.helpers.registration_helpers import assert_rigid as _assert_rigid
@@ -79,3 +80,15 @@ def test_config_composes_instantiates_and_reloads_from_a_checkpoint(tmp_path):
         expected = module(src, ref)
         torch.manual_seed(5)
         torch.testing.assert_close(loaded(src, ref), expected)
+
+
+def test_the_layer_norm_is_the_codes_unless_a_checkpoint_was_trained_with_pytorchs():
+    from baselines.learned.common.correspondence import AuthorsLayerNorm
+
+    kinds = lambda net: {type(m) for m in net.modules() if isinstance(m, torch.nn.LayerNorm)}  # noqa: E731
+    assert kinds(PRNet(width=0.0625)) == {AuthorsLayerNorm}
+    assert kinds(PRNet(width=0.0625, layer_norm="torch")) == {torch.nn.LayerNorm}
+    with pytest.raises(ValueError, match="layer_norm must be one of"):
+        PRNet(width=0.0625, layer_norm="batch")
+    shipped = torch.load(SHIPPED_DIR / "prnet_real_airplane_ts_prnet.ckpt", map_location="cpu", weights_only=False)
+    assert shipped["hyper_parameters"]["network"]["layer_norm"] == "torch"  # evaluated as it was trained
