@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from baselines import get_registrator, run_pairs, transform_problem
+from baselines.registry import resolve_registrator
 from baselines.classical import _optional
 from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
 from src.utils.errors import ConfigError, PointCloudError
@@ -26,9 +27,10 @@ LOCAL = ["point_to_plane_icp", "gicp", "small_gicp", "cpd", "filterreg"]
 
 
 def _needs(method: str) -> None:
-    package = PACKAGES[method]
-    if package and importlib.util.find_spec(package.replace("-", "_")) is None:
-        pytest.skip(f"optional package {package} not installed: {_optional.install_hint(package)}")
+    """Skip, with the product's own install hint, when the method's optional package is missing."""
+    cls = resolve_registrator(method)
+    if issubclass(cls, _optional.NeedsPackage) and importlib.util.find_spec(cls.module) is None:
+        pytest.skip(f"optional package {cls.package} not installed: {_optional.install_hint(cls.package, cls.extra)}")
 
 
 def _errors(estimate, truth) -> tuple[float, float]:
