@@ -38,12 +38,12 @@ def estimates(method: str, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> 
         one_thread()
         return np.stack([registrator.register(src, ref) for src, ref in zip(pairs["src"], pairs["ref"])])
     registrator = get_registrator(key, device="cpu", batch_size=BATCH, **options)
+    if method == "prnet":
+        _authors_layer_norm(registrator.module)
     if dtype == torch.float32:
         return np.concatenate([registrator.register_batch(pairs["src"][i:i + BATCH], pairs["ref"][i:i + BATCH])
                                for i in range(0, len(pairs["src"]), BATCH)])
     module = registrator.module.to(dtype)
-    if method == "prnet":
-        _authors_layer_norm(module)
     out = []
     with torch.no_grad():
         for i in range(0, len(pairs["src"]), BATCH):
