@@ -28,7 +28,8 @@ from src.metrics import ERROR_R, ERROR_T, MODIFIED_CHAMFER
 PROTOCOLS = {"modelnet": "ModelNet", "modellonet": "ModelLoNet"}
 #: Our experiments of each protocol: the protocol's own (conf/exp/modelnet.yaml, modellonet.yaml) and its stand-ins.
 EXPERIMENT_PROTOCOL = {"modelnet": "modelnet", "modellonet": "modellonet",
-                       "real_airplane_modelnet": "modelnet", "real_airplane_modellonet": "modellonet"}
+                       "real_airplane_modelnet": "modelnet", "real_airplane_modellonet": "modellonet",
+                       "real_bathtub_modelnet": "modelnet", "real_bathtub_modellonet": "modellonet"}
 #: The literature's column -> our metric (src/metrics.py).
 METRICS = {"RRE": ERROR_R, "RTE": ERROR_T, "CD": MODIFIED_CHAMFER}
 DECIMALS = {"RRE": 3, "RTE": 4, "CD": 5}
@@ -80,6 +81,14 @@ def published_rows(published: pd.DataFrame) -> pd.DataFrame:
     cells = published.assign(protocol=published["protocol"].map(PROTOCOLS), row=published["method"] + " (paper)")
     wide = cells.pivot(index="row", columns=["protocol", "metric"], values="value")
     return wide.reindex(index=list(dict.fromkeys(cells["row"])), columns=COLUMNS)
+
+
+def source_notes(published: pd.DataFrame) -> list[str]:
+    """One note per source and way it was checked: ``<methods>: <source><how checked>`` (methods in order)."""
+    checked = published["checked"].astype(str).str.lower().where(published["checked"].notna(), "no")
+    groups = published.assign(checked=checked).groupby(["source", "checked"], sort=False)["method"]
+    return [f"{', '.join(dict.fromkeys(methods))}: {source}{CHECKED_NOTES.get(how, CHECKED_NOTES['no'])}"
+            for (source, how), methods in groups]
 
 
 def _tex(text: str) -> str:
@@ -155,10 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     paper_rows = published_rows(paper)
-    sources = paper.drop_duplicates("source")
-    notes = [*args.note, "Published values (paper rows, in italics): " + "; ".join(
-        f"{row.method}: {row.source}{CHECKED_NOTES.get(str(row.checked).lower(), CHECKED_NOTES['no'])}"
-        for row in sources.itertuples())]
+    notes = [*args.note, "Published values (paper rows, in italics): " + "; ".join(source_notes(paper))]
     if any(label.endswith(LEARNED_MARK) for label in ours.index):
         notes.append("† learned; its weights as the grid's config names them.")
     out = Path(args.out)

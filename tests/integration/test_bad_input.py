@@ -122,8 +122,8 @@ def test_intervals_budgets_and_unknown_object_options_are_refused(override, mess
     ("src.train", ["trainer.max_step=5"], "error: trainer.max_step is not a key of trainer: did you mean "
                                           "trainer.max_steps, trainer.max_epochs? add a new key with +trainer.max_step=VALUE"),
     ("benchmarks.grid", ["+benchmark=nosuch"], "error: benchmark=nosuch: no such config in group benchmark; choose one "
-                                               "of: default, demo, modelnet_real_airplane, published_weights, real_airplane, "
-                                               "real_categories, scan_pairs, stanford"),
+                                               "of: default, demo, modelnet_real_airplane, modelnet_real_bathtub, "
+                                               "published_weights, real_airplane, real_categories, scan_pairs, stanford"),
 ])
 def test_hydra_override_errors_are_one_line_exit_2(module, argv, message, monkeypatch, capsys):
     main = importlib.import_module(COMMAND_MODULES.get(module, module)).main

@@ -1,5 +1,6 @@
 """+exp=modelnet / modellonet (Predator's and RegTR's partial ModelNet40 protocol) and their real-airplane
-stand-ins: the composed settings are the authors' code's, and their pairs are what that code draws."""
+stand-ins (real airplanes, real bathtubs): the composed settings are the authors' code's, and their pairs are what
+that code draws."""
 
 import numpy as np
 import pytest
@@ -10,7 +11,8 @@ from src.data.pipelines import build_pair_transforms
 
 PROTOCOL = {"sampling": "os", "partial": "rpmnet", "num_points": 2048, "rot_mag": 45.0, "trans_mag": 0.5,
             "rpmnet_resample_points": 717, "noise_sigma": 0.01, "noise_clip": 0.05}
-P_KEEP = {"modelnet": 0.7, "modellonet": 0.5, "real_airplane_modelnet": 0.7, "real_airplane_modellonet": 0.5}
+P_KEEP = {"modelnet": 0.7, "modellonet": 0.5, "real_airplane_modelnet": 0.7, "real_airplane_modellonet": 0.5,
+          "real_bathtub_modelnet": 0.7, "real_bathtub_modellonet": 0.5}
 
 
 def _compose(experiment: str, *overrides: str):
@@ -40,6 +42,17 @@ def test_stand_ins_keep_the_real_airplane_carve_out(experiment):
     cfg, real = _compose(experiment), _compose("real_airplane")
     assert cfg.data.dataset == real.data.dataset == "modelnet40_resampled"
     assert cfg.data.splits == real.data.splits
+
+
+@pytest.mark.parametrize("crop", ["modelnet", "modellonet"])
+def test_bathtub_stand_ins_differ_from_the_airplane_ones_only_in_the_test_category(crop):
+    """The same pairs and training splits; the test set the last 100 bathtub train ids instead of the airplanes'."""
+    bathtub, airplane = _compose(f"real_bathtub_{crop}"), _compose(f"real_airplane_{crop}")
+    assert bathtub.data.pair == airplane.data.pair and bathtub.data.dataset == airplane.data.dataset
+    assert {s: bathtub.data.splits[s] for s in ("train", "val")} == {s: airplane.data.splits[s] for s in ("train", "val")}
+    test, plane_test = bathtub.data.splits.test, airplane.data.splits.test
+    assert list(test.categories) == ["bathtub"] and list(plane_test.categories) == ["airplane"]
+    assert (test.split, list(test.slice)) == (plane_test.split, list(plane_test.slice)) == ("train", ["-100", None])
 
 
 @pytest.mark.parametrize("experiment", ["modelnet", "modellonet"])

@@ -77,6 +77,17 @@ def test_default_grid_and_real_airplane_compose():
         assert all(Path(real.method_options[m].checkpoint).is_file() for m in learned)
 
 
+def test_modelnet_bathtub_grid_is_the_airplane_grid_on_the_bathtub_stand_ins():
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        airplane = compose("benchmark_grid", overrides=["+benchmark=modelnet_real_airplane"])
+        bathtub = compose("benchmark_grid", overrides=["+benchmark=modelnet_real_bathtub"])
+    assert list(bathtub.benchmark.experiments) == ["real_bathtub_modelnet", "real_bathtub_modellonet"]
+    assert bathtub.benchmark.name == "modelnet_real_bathtub" and bathtub.output_dir == "outputs/grid/modelnet_real_bathtub"
+    same = ("methods", "samplings", "partials", "max_pairs", "max_pairs_by_method")
+    assert {k: bathtub.benchmark[k] for k in same} == {k: airplane.benchmark[k] for k in same}
+    assert bathtub.method_options == airplane.method_options and bathtub.data.dataset == "modelnet40_resampled"
+
+
 def _by_hand(cache_root: Path, partial: str, method_pred) -> dict[str, float]:
     """The same pairs through src's own data path, registered here, scored with RegistrationMetrics."""
     import hydra

@@ -49,6 +49,28 @@ def test_bad_published_rows_are_refused(tmp_path):
                                                           "value": 1.0, "source": "S", "checked": "no"}]))
 
 
+def test_source_notes_name_every_method_of_a_source_and_how_it_was_checked():
+    published = pd.DataFrame([
+        {"protocol": "modelnet", "method": "RegTR", "metric": "RRE", "value": 1.5, "source": "Paper A, Table 1", "checked": "yes"},
+        {"protocol": "modelnet", "method": "RPM-Net", "metric": "RRE", "value": 1.7, "source": "Paper A, Table 1", "checked": "yes"},
+        {"protocol": "modellonet", "method": "RegTR", "metric": "RRE", "value": 3.9, "source": "Paper A, Table 1", "checked": "yes"},
+        {"protocol": "modelnet", "method": "Predator", "metric": "RRE", "value": 1.8, "source": "Listing B", "checked": "listing"},
+        {"protocol": "modelnet", "method": "X", "metric": "CD", "value": 0.1, "source": "Paper C", "checked": None},
+    ])
+    assert literature.source_notes(published) == [
+        "RegTR, RPM-Net: Paper A, Table 1",
+        "Predator: Listing B" + literature.CHECKED_NOTES["listing"],
+        "X: Paper C" + literature.CHECKED_NOTES["no"],
+    ]
+
+
+def test_bathtub_stand_ins_map_to_the_protocols():
+    tidy = _tidy()
+    tidy["experiment"] = tidy["experiment"].str.replace("airplane", "bathtub")
+    ours = literature.our_rows(tidy)
+    assert ours.loc["ICP", ("ModelNet", "RRE")] == 1.0 and ours.loc["ICP", ("ModelLoNet", "RRE")] == 3.0
+
+
 def test_shipped_published_values_name_their_sources():
     published = literature.load_published()
     assert published["source"].str.len().min() > 10 and set(published["checked"]) <= {"yes", "listing", "no"}
