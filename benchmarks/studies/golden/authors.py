@@ -156,6 +156,15 @@ def prnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> n
         return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
 
 
+def fmr(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """XiaoshuiHuang/fmr's FMR with the shipped FMR checkpoint's weights, their test's estimate (10 iterations,
+    xtol 1e-7, one pair at a time: :mod:`benchmarks.studies.golden.authors_fmr`)."""
+    from benchmarks.studies.golden.authors_fmr import authors_network, pose
+
+    ours, network = shipped_network("fmr", dtype)
+    theirs = authors_network(checkout, ours, network)
+    return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
+
 def learning3d_pointnetlk(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """vinits5/learning3d's PointNetLK (``models/pointnetlk.py``, PointNet(emb_dims=1024, use_bn=True)) with the
     published ``learning3d_pointnetlk.t7``, ``forward(template=ref, source=src, maxiter=10)``; the estimate is its
@@ -253,6 +262,7 @@ REFERENCES: dict[str, Reference] = {
     "idam": Reference("jiahaowork/idam", "idam_real_airplane_ts_prnet", idam),
     "rpmnet": Reference("yewzijian/RPMNet", "rpmnet_real_airplane_ts_prnet", rpmnet),
     "prnet": Reference("WangYueFt/prnet", "prnet_real_airplane_ts_prnet", prnet),
+    "fmr": Reference("XiaoshuiHuang/fmr", "fmr_real_airplane_ts_prnet", fmr),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},

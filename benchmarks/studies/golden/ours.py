@@ -24,6 +24,7 @@ METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "omnet": ("omnet", {}),  # the shipped checkpoints
     "idam": ("idam", {}),
     "rpmnet": ("rpmnet", {}),
+    "fmr": ("fmr", {}),
     "prnet": ("prnet", {"seed": NOISE_SEED}),  # the seed of its Gumbel noise, as the golden file's
     **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
 }
