@@ -35,7 +35,7 @@ import torch
 from benchmarks.speed.inference import count_flops
 from benchmarks.speed.train_step import build_network, pair_batch, training_step
 from benchmarks.studies.precision.emulated import PRODUCTS, Bf16ProductsInFp32
-from benchmarks.studies.precision.step_times import mm_rate
+from benchmarks.studies.precision.step_times import mm_rate, write_report
 from src.utils.errors import exit_code_of
 
 #: The bf16 over float32 torch.mm rate measured on an Intel Xeon with AMX (one thread, 2048x1024 by 1024x1024:
@@ -127,14 +127,7 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
             rows.append({**base, **project(fp32_step, fp32_products, bf16_rest, flops, mm32, ratio)})
         lines += _describe(method, fp32, bf16, base, rows[-len(args.ratios) - 1:], args.top)
     frame = pd.DataFrame(rows)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(out / "projection.csv", index=False)
-    lines += ["", f"- width {args.model_scale}, batch {args.batch}, {args.points} points, median of {args.steps} steps "
-              f"after {args.warmup}, process CPU time, one thread, bf16 products emulated; command: "
-              f"`python -m benchmarks.studies.precision.projection {' '.join(sys.argv[1:])}`"]
-    (out / "projection.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(Path(args.out), "projection", frame, lines, args, "one thread, bf16 products emulated")
     return frame
 
 

@@ -61,9 +61,6 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         print(f"{method}: fp32 {row['fp32_ms']:.0f} ms, bf16 {row['bf16_ms']:.0f} ms ({row['bf16_over_fp32']:.1f}x) "
               f"{row.get('note', '')}", flush=True)
     frame = pd.DataFrame(rows)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(out / "step_times.csv", index=False)
     lines = [f"torch.mm 1024³ (best of 3): fp32 {rates['fp32']:.1f} GFLOP/s, bf16 {rates['bf16']:.2f} GFLOP/s "
              f"(bf16 {rates['fp32'] / rates['bf16']:.0f}x slower)", "",
              "| method | fp32 ms/step | bf16-mixed ms/step | bf16 / fp32 |", "|---|---:|---:|---:|"]
@@ -71,12 +68,20 @@ def run(args: argparse.Namespace) -> pd.DataFrame:
         note = r.get("note")
         ratio = f"{r['bf16_over_fp32']:.1f}x" if pd.notna(r["bf16_over_fp32"]) else str(note)
         lines.append(f"| {r['method']} | {r['fp32_ms']:.0f} | {r['bf16_ms']:.0f} | {ratio} |")
-    lines += ["", f"- width {args.model_scale}, batch {args.batch}, {args.points} points, median of {args.steps} steps "
-              f"after {args.warmup}, process CPU time, one thread; command: "
-              f"`python -m benchmarks.studies.precision.step_times {' '.join(sys.argv[1:])}`"]
-    (out / "step_times.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(Path(args.out), "step_times", frame, lines, args, "one thread")
     return frame
+
+
+def write_report(out: Path, name: str, frame: pd.DataFrame, lines: list[str], args: argparse.Namespace, how: str) -> None:
+    """``out/<name>.csv`` (``frame``) and ``out/<name>.md`` (``lines``, then the run's size, ``how`` it was timed
+    and its command), the latter printed."""
+    out.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(out / f"{name}.csv", index=False)
+    lines = [*lines, "", f"- width {args.model_scale}, batch {args.batch}, {args.points} points, median of {args.steps} "
+             f"steps after {args.warmup}, process CPU time, {how}; command: "
+             f"`python -m benchmarks.studies.precision.{name} {' '.join(sys.argv[1:])}`"]
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 def main(argv: list[str] | None = None) -> int:
