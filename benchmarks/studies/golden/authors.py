@@ -156,6 +156,31 @@ def prnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> n
         return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
 
 
+def deepgmr(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """wentaoyuan/deepgmr's DeepGMR with the shipped DeepGMR checkpoint's weights, its layers at the checkpoint's
+    width, given the RRI features their data loader computes (:mod:`benchmarks.studies.golden.authors_deepgmr`); in
+    float64 their float32 literals keep float64 (:func:`benchmarks.studies.lockstep.harness.float64_mode`)."""
+    import contextlib
+
+    from benchmarks.studies.golden.authors_deepgmr import (
+        authors_estimate,
+        authors_network,
+    )
+    from benchmarks.studies.lockstep.harness import float64_mode
+
+    ours, settings = shipped_network("deepgmr", dtype)
+    authors, theirs = authors_network(checkout, ours, settings)
+    gt = torch.from_numpy(pairs["transform_gt"]).to(dtype)
+    done = [0]
+
+    def run(src: Tensor, ref: Tensor) -> np.ndarray:
+        done[0] += len(src)
+        return _as_np(authors_estimate(authors, theirs, settings["k"], src, ref, gt[done[0] - len(src):done[0]]))
+
+    with float64_mode() if dtype == torch.float64 else contextlib.nullcontext():
+        return _batched(pairs, dtype, run)
+
+
 def learning3d_pointnetlk(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """vinits5/learning3d's PointNetLK (``models/pointnetlk.py``, PointNet(emb_dims=1024, use_bn=True)) with the
     published ``learning3d_pointnetlk.t7``, ``forward(template=ref, source=src, maxiter=10)``; the estimate is its
@@ -253,6 +278,7 @@ REFERENCES: dict[str, Reference] = {
     "idam": Reference("jiahaowork/idam", "idam_real_airplane_ts_prnet", idam),
     "rpmnet": Reference("yewzijian/RPMNet", "rpmnet_real_airplane_ts_prnet", rpmnet),
     "prnet": Reference("WangYueFt/prnet", "prnet_real_airplane_ts_prnet", prnet),
+    "deepgmr": Reference("wentaoyuan/deepgmr", "deepgmr_real_airplane_ts_prnet", deepgmr),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},

@@ -25,6 +25,7 @@ METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "idam": ("idam", {}),
     "rpmnet": ("rpmnet", {}),
     "prnet": ("prnet", {"seed": NOISE_SEED}),  # the seed of its Gumbel noise, as the golden file's
+    "deepgmr": ("deepgmr", {}),
     **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
 }
 BATCH = 8
@@ -38,6 +39,8 @@ def estimates(method: str, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> 
         one_thread()
         return np.stack([registrator.register(src, ref) for src, ref in zip(pairs["src"], pairs["ref"])])
     registrator = get_registrator(key, device="cpu", batch_size=BATCH, **options)
+    if method == "deepgmr":  # the code's RRI projection (the default); the shipped checkpoint records rri=exact
+        registrator.module.network.rri = "authors"
     if dtype == torch.float32:
         return np.concatenate([registrator.register_batch(pairs["src"][i:i + BATCH], pairs["ref"][i:i + BATCH])
                                for i in range(0, len(pairs["src"]), BATCH)])
