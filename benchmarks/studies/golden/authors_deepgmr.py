@@ -104,16 +104,16 @@ def authors_network(checkout: Path, ours: nn.Module, settings: dict) -> tuple[ty
     return authors, theirs.to(next(ours.parameters()).dtype).eval()
 
 
-def authors_estimate(authors: types.SimpleNamespace, theirs: nn.Module, k: int, src: Tensor, ref: Tensor,
-                     transform_gt: Tensor) -> Tensor:
+def authors_estimate(authors: types.SimpleNamespace, theirs: nn.Module, k: int, src: Tensor, ref: Tensor) -> Tensor:
     """(B, 4, 4): their ``T_12`` (model.py:176, the pose test.py reports) of ``forward(pts1, pts2, T_gt)`` on
-    (B, N, 3 + 4k) points and their RRI features, ``pts1`` the source; ``T_gt`` enters their loss only. The
-    features: their ``get_rri`` of each centred cloud (data.py:110-111) in float64, then the points' dtype."""
+    (B, N, 3 + 4k) points and their RRI features, ``pts1`` the source; ``T_gt`` enters their loss and errors only
+    (model.py:178-187), the identity here. The features: their ``get_rri`` of each centred cloud (data.py:110-111)
+    in float64, then the points' dtype."""
     def with_rri(points: Tensor) -> Tensor:
         clouds = points.double().numpy()
         rri = np.stack([authors.data.get_rri(cloud - cloud.mean(axis=0), k) for cloud in clouds])
         return torch.cat((points, torch.from_numpy(rri).to(points.dtype)), dim=-1)
 
-    theirs(with_rri(src), with_rri(ref), transform_gt)
+    theirs(with_rri(src), with_rri(ref), torch.eye(4, dtype=src.dtype).expand(len(src), 4, 4))
     return theirs.T_12
 
