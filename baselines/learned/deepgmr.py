@@ -23,10 +23,12 @@ README), not its code:
 * training recipe (Adam, ReduceLROnPlateau on the validation loss, batch, epochs, checkpoint):
   ``conf/recipe/deepgmr.yaml``.
 
-Deviations: RRI uses the exact tangent-plane projection (see
-:func:`~baselines.learned.common.global_feature.rri_features`) and is computed in the network's
-forward instead of the data loader; small ``eps`` guards the GMM divisions; ``exact_procrustes``
-switches to the exact weighted least-squares solve; ``width`` scales the channels (1.0 = paper).
+Deviations: RRI is computed in the network's forward instead of the data loader, with the code's
+tangent projection q − (p̂·q̂)p (data.py:35; ``rri=exact``: the exact projection onto the plane ⊥ p,
+with which checkpoints written before this option were trained, see
+:func:`~baselines.learned.common.global_feature.rri_features`); small ``eps`` guards the GMM
+divisions; ``exact_procrustes`` switches to the exact weighted least-squares solve; ``width`` scales
+the channels (1.0 = paper).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from baselines.learned.common.global_feature import (
+    RRI_PROJECTIONS,
     at_least_fp32,
     composed_identity_error,
     full_precision,
@@ -73,9 +76,12 @@ class DeepGMR(nn.Module):
         k: int = 20,
         width: float = 1.0,
         exact_procrustes: bool = False,
+        rri: str = "authors",
     ) -> None:
         super().__init__()
-        self.use_rri, self.k, self.exact_procrustes = use_rri, k, exact_procrustes
+        if rri not in RRI_PROJECTIONS:
+            raise ValueError(f"rri must be one of {RRI_PROJECTIONS}, got {rri!r}")
+        self.use_rri, self.k, self.exact_procrustes, self.rri = use_rri, k, exact_procrustes, rri
         self.backbone = DeepGMRBackbone(4 * k if use_rri else 3, d_model, n_clusters, width)
 
     def point_features(self, points: Tensor) -> Tensor:
@@ -83,7 +89,7 @@ class DeepGMR(nn.Module):
             # neighbours and angles in float32 under bf16 autocast (the official code computes them in its NumPy
             # data loader): in bf16 their products round the angles and change the chosen neighbours
             with full_precision(points.device):
-                return rri_features(at_least_fp32(points), self.k)
+                return rri_features(at_least_fp32(points), self.k, self.rri)
         return points - points.mean(dim=1, keepdim=True)
 
     def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:

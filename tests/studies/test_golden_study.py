@@ -1,6 +1,6 @@
 """The golden-file study's helpers (benchmarks/studies/golden): the rotation difference, golden files' round
-trip, the spread's summary and report, its one-line errors, and PRNet's authors' network at our width (against
-WangYueFt/prnet only where PRNET_AUTHORS_DIR names a checkout of it)."""
+trip, the spread's summary and report, its one-line errors, and PRNet's and DeepGMR's authors' networks at our width
+(against WangYueFt/prnet, wentaoyuan/deepgmr only where PRNET_AUTHORS_DIR, DEEPGMR_AUTHORS_DIR name checkouts)."""
 
 import os
 from pathlib import Path
@@ -10,7 +10,12 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from benchmarks.studies.golden import authors_prnet, golden_file, spread
+from benchmarks.studies.golden import (
+    authors_deepgmr,
+    authors_prnet,
+    golden_file,
+    spread,
+)
 from benchmarks.studies.golden.generate import main as generate_main
 from src.utils.errors import ConfigError
 
@@ -94,3 +99,42 @@ def test_prnet_authors_code_gives_its_golden_file(tmp_path):
     pairs = {k: v[:8] for k, v in golden_pairs(prepare_cache(tmp_path)).items()}  # one batch
     estimates = prnet(Path(os.environ["PRNET_AUTHORS_DIR"]), pairs, torch.float64)
     np.testing.assert_array_equal(estimates, golden_file.read_golden("prnet")["transforms"][:8])
+
+
+def test_deepgmr_authors_literals_are_scaled_as_ours_and_every_layer_is_mapped():
+    namespace = authors_deepgmr._scaled_nn(0.5, (64, 128, 256, 512, 1024, 2048))
+    assert namespace.Conv1d(80, 64, kernel_size=1).weight.shape[:2] == (32, 80)  # their first layer (model.py:124)
+    assert namespace.Conv1d(128, 16, kernel_size=1).weight.shape[:2] == (16, 64)  # their last, into the J clusters
+    assert namespace.BatchNorm1d(2048).num_features == 1024 and namespace.ReLU is torch.nn.ReLU
+    def block() -> torch.nn.Module:
+        return torch.nn.Sequential(torch.nn.Conv1d(4, 4, 1), torch.nn.BatchNorm1d(4), torch.nn.ReLU())
+
+    theirs = torch.nn.Module()
+    theirs.backbone = torch.nn.Module()
+    theirs.backbone.encoder = torch.nn.Sequential(block(), block())
+    theirs.backbone.decoder = torch.nn.Sequential(block(), torch.nn.Conv1d(4, 2, 1))
+    assert authors_deepgmr.layer_pairs(theirs) == [
+        ("backbone.encoder.layers.0", "backbone.encoder.0.0"), ("backbone.encoder.layers.1", "backbone.encoder.0.1"),
+        ("backbone.encoder.layers.3", "backbone.encoder.1.0"), ("backbone.encoder.layers.4", "backbone.encoder.1.1"),
+        ("backbone.decoder.layers.0", "backbone.decoder.0.0"), ("backbone.decoder.layers.1", "backbone.decoder.0.1"),
+        ("backbone.logits", "backbone.decoder.1")]
+
+
+def test_deepgmr_authors_network_refuses_what_their_code_cannot_be():
+    network = {"d_model": 1024, "n_clusters": 16, "use_rri": True, "k": 20, "width": 0.5, "exact_procrustes": False}
+    with pytest.raises(ConfigError, match="the golden reference is their code's RRI network"):
+        authors_deepgmr.build(None, {**network, "exact_procrustes": True})
+    with pytest.raises(ConfigError, match="cannot be told apart"):
+        authors_deepgmr.build(None, {**network, "k": 16})  # 4k = 64 inputs, one of their width literals
+
+
+@pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
+@pytest.mark.skipif(not os.environ.get("DEEPGMR_AUTHORS_DIR"),
+                    reason="DEEPGMR_AUTHORS_DIR (a checkout of wentaoyuan/deepgmr) not set: their side is not checked")
+def test_deepgmr_authors_code_gives_its_golden_file(tmp_path):
+    from benchmarks.studies.golden.authors import deepgmr
+    from benchmarks.studies.golden.pairs import golden_pairs, prepare_cache
+
+    pairs = {k: v[:8] for k, v in golden_pairs(prepare_cache(tmp_path)).items()}  # one batch
+    estimates = deepgmr(Path(os.environ["DEEPGMR_AUTHORS_DIR"]), pairs, torch.float64)
+    np.testing.assert_array_equal(estimates, golden_file.read_golden("deepgmr")["transforms"][:8])

@@ -388,19 +388,26 @@ def gmm_register(
     return se3_from_rt(rot, c_t - (rot @ c_s.unsqueeze(-1)).squeeze(-1))
 
 
+#: The tangent projection of the RRI features: DeepGMR's code's, or the exact one (:func:`rri_features`).
+RRI_PROJECTIONS = ("authors", "exact")
+
+
 @torch.no_grad()
-def rri_features(points: Tensor, k: int = 20) -> Tensor:
+def rri_features(points: Tensor, k: int = 20, projection: str = "authors") -> Tensor:
     """Rigorously rotation-invariant features (B, N, 4k) of points (B, N, 3), as DeepGMR's input.
 
     Points are centred on their mean (DeepGMR's ``get_rri(pts - pts.mean(0), k)``). For each point p
     and each of its k nearest neighbours q (self excluded, nearest first): ``[‖p‖, ‖q‖, θ, φ]`` with
     θ = ∠(p, q) and φ ∈ [0, 2π) the smallest angle through which the projection (onto the plane ⊥ p)
     of another of the k neighbours turns, counter-clockwise about p̂, onto that of q (the RRI of
-    Chen et al., ClusterNet, CVPR 2019, as DeepGMR's ``get_rri`` computes it). Deviation: the
-    projection here is the exact q − (q·p̂)p̂; DeepGMR's NumPy code uses q − (p̂·q̂)p, which differs
-    when ‖q‖ ≠ ‖p‖ (both are rotation invariant).
+    Chen et al., ClusterNet, CVPR 2019, as DeepGMR's ``get_rri`` computes it). ``projection``:
+    ``authors`` takes DeepGMR's q − (p̂·q̂)p (wentaoyuan/deepgmr data.py:35, rri.cu alike), which leaves
+    the plane ⊥ p when ‖q‖ ≠ ‖p‖ and so changes φ's cosine; ``exact`` the projection q − (q·p̂)p̂.
+    Both are rotation invariant.
     Not differentiable (computed once per cloud, as the official data loader does).
     """
+    if projection not in RRI_PROJECTIONS:
+        raise ValueError(f"projection must be one of {RRI_PROJECTIONS}, got {projection!r}")
     b, n, _ = points.shape
     p = points - points.mean(dim=1, keepdim=True)
     idx = knn_indices(p, k + 1)[..., 1:]  # (B, N, k)
@@ -408,9 +415,12 @@ def rri_features(points: Tensor, k: int = 20) -> Tensor:
     r_p = p.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # (B, N, 1)
     r_q = q.norm(dim=-1).clamp_min(1e-12)  # (B, N, k)
     p_hat = p / r_p
-    cos_theta = ((q / r_q.unsqueeze(-1)) * p_hat.unsqueeze(2)).sum(-1).clamp(-1, 1)
-    theta = torch.acos(cos_theta)
-    tangent = q - (q * p_hat.unsqueeze(2)).sum(-1, keepdim=True) * p_hat.unsqueeze(2)  # (B, N, k, 3)
+    dot = ((q / r_q.unsqueeze(-1)) * p_hat.unsqueeze(2)).sum(-1)  # p̂·q̂ (B, N, k)
+    theta = torch.acos(dot.clamp(-1, 1))
+    if projection == "authors":
+        tangent = q - dot.unsqueeze(-1) * p.unsqueeze(2)  # (B, N, k, 3)
+    else:
+        tangent = q - (q * p_hat.unsqueeze(2)).sum(-1, keepdim=True) * p_hat.unsqueeze(2)
     # psi[a, b]: angle about p̂ from neighbour b's projection to neighbour a's, in [0, 2π)
     axis_cross = torch.cross(tangent, p_hat.unsqueeze(2).expand_as(tangent), dim=-1)  # T_a × p̂
     sin_psi = axis_cross @ tangent.transpose(-1, -2)  # [a, b] = T_b · (T_a × p̂) = (T_b × T_a) · p̂

@@ -164,6 +164,27 @@ def fmr(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.
     ours, network = shipped_network("fmr", dtype)
     theirs = authors_network(checkout, ours, network)
     return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
+def deepgmr(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """wentaoyuan/deepgmr's DeepGMR with the shipped DeepGMR checkpoint's weights, its layers at the checkpoint's
+    width, given the RRI features their data loader computes (:mod:`benchmarks.studies.golden.authors_deepgmr`); in
+    float64 their float32 literals keep float64 (:func:`benchmarks.studies.lockstep.harness.float64_mode`)."""
+    import contextlib
+
+    from benchmarks.studies.golden.authors_deepgmr import (
+        authors_estimate,
+        authors_network,
+    )
+    from benchmarks.studies.lockstep.harness import float64_mode
+
+    ours, settings = shipped_network("deepgmr", dtype)
+    authors, theirs = authors_network(checkout, ours, settings)
+
+    def run(src: Tensor, ref: Tensor) -> np.ndarray:
+        return _as_np(authors_estimate(authors, theirs, settings["k"], src, ref))
+
+    with float64_mode() if dtype == torch.float64 else contextlib.nullcontext():
+        return _batched(pairs, dtype, run)
+
 
 def learning3d_pointnetlk(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """vinits5/learning3d's PointNetLK (``models/pointnetlk.py``, PointNet(emb_dims=1024, use_bn=True)) with the
@@ -263,6 +284,7 @@ REFERENCES: dict[str, Reference] = {
     "rpmnet": Reference("yewzijian/RPMNet", "rpmnet_real_airplane_ts_prnet", rpmnet),
     "prnet": Reference("WangYueFt/prnet", "prnet_real_airplane_ts_prnet", prnet),
     "fmr": Reference("XiaoshuiHuang/fmr", "fmr_real_airplane_ts_prnet", fmr),
+    "deepgmr": Reference("wentaoyuan/deepgmr", "deepgmr_real_airplane_ts_prnet", deepgmr),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},

@@ -40,13 +40,20 @@ FLOAT64_TRANSLATION = 1e-6
 #: which amplifies float64 rounding differences (ours folds the convolution biases into BatchNorm) to at most
 #: 1.1e-4 degree and 1.0e-6 on these pairs (benchmarks/studies/golden/README.md).
 FLOAT64_OWN = {"learning3d_pointnetlk": (1e-3, 1e-5)}
+#: Pairs whose input is degenerate for a method, held to (degrees, translation) and the others to FLOAT64_DEGREES:
+#: DeepGMR's RRI features hang on the last bits at exact k-NN distance ties (ours orders them by cdist and topk,
+#: theirs by cKDTree) and at nearly collinear neighbour projections (φ of ~1e-16 rad goes to one of the two
+#: neighbours or the other). The sources of these pairs (5 clouds, each in one OS and one TS pair) hold 1-6 such
+#: points of 768; the estimates differ by up to 0.040° and 1.6e-4 there, below 1e-11° elsewhere
+#: (benchmarks/studies/golden/README.md).
+FLOAT64_DEGENERATE = {"deepgmr": ((0, 2, 5, 7, 11, 12, 14, 17, 19, 23), 0.1, 5e-4)}
 #: float32 against the float64 golden file, in degrees: twice the largest distance measured over the instruction
 #: paths of benchmarks/results/float32_spread.md (DCP-v1 1.80°, IDAM 1.63°, OMNet 2.0e-5°, learning3d's PointNetLK
 #: 0.017°, FMR 1.0e-3°), rounded up; PointNetLK-Revisited: twice its default path's distance (4.0e-5°) plus its
 #: spread (4.7e-5°); RPM-Net: twice its largest distance (2.8e-4°) plus the 7.0e-4° a k-NN tie of its normals moves
-#: pairs 7 and 19 by when broken the other way, rounded up.
+#: pairs 7 and 19 by when broken the other way, rounded up; DeepGMR: twice its largest distance (0.43°), rounded up.
 FLOAT32_DEGREES = {"dcp_v1": 4.0, "idam": 4.0, "omnet": 5e-5, "learning3d_pointnetlk": 0.05, "pointnetlk_revisited": 2e-4,
-                   "rpmnet": 2e-3, "fmr": 2e-3}
+                   "rpmnet": 2e-3, "fmr": 2e-3, "deepgmr": 1.0}
 #: Learned methods whose float32 estimates cannot be held to their golden file pair for pair: PRNet's hard Gumbel
 #: samples flip with float32 rounding, and its shipped checkpoint's estimates move by up to 177° between
 #: instruction paths (benchmarks/results/float32_spread.md); float64 holds it to FLOAT64_DEGREES.
@@ -97,11 +104,13 @@ def test_float64_matches_the_reference_pair_for_pair(pairs, method):
     golden = read_golden(method)["transforms"]
     if method in LIBRARIES:  # an optional package of the framework
         pytest.importorskip(LIBRARIES[method])
-    degrees, translation = FLOAT64_OWN.get(method, (FLOAT64_DEGREES, FLOAT64_TRANSLATION))
+    degrees, translation = (np.full(len(golden), t) for t in FLOAT64_OWN.get(method, (FLOAT64_DEGREES, FLOAT64_TRANSLATION)))
+    degenerate, degrees_there, translation_there = FLOAT64_DEGENERATE.get(method, ((), 0.0, 0.0))
+    degrees[list(degenerate)], translation[list(degenerate)] = degrees_there, translation_there
     estimates = ours.estimates(method, pairs, torch.float64)
     rotation = rotation_difference_deg(estimates, golden)
-    assert rotation.max() < degrees, f"pairs {np.flatnonzero(rotation >= degrees).tolist()}: {rotation.max():.3g} deg"
-    assert translation_difference(estimates, golden).max() < translation
+    assert (rotation < degrees).all(), f"pairs {np.flatnonzero(rotation >= degrees).tolist()}: {rotation.max():.3g} deg"
+    assert (translation_difference(estimates, golden) < translation).all()
 
 
 @pytest.mark.parametrize("method", _params(sorted(FLOAT32_DEGREES)))

@@ -81,3 +81,19 @@ def test_training_steps_lower_the_loss_on_a_tiny_batch():
     model = DeepGMR(width=0.125, k=8)
     losses = train_losses(model, _batch(), steps=10)
     assert losses[-1] < 0.2 * losses[0]
+
+
+def test_the_rri_projection_is_the_codes_unless_a_checkpoint_was_trained_with_the_exact_one():
+    from src.utils.paths import SHIPPED_DIR
+
+    assert DeepGMR(width=0.125).rri == "authors" and DeepGMR(width=0.125, rri="exact").rri == "exact"
+    with pytest.raises(ValueError, match="rri must be one of"):
+        DeepGMR(width=0.125, rri="plane")
+    torch.manual_seed(0)
+    model, (src, ref, _) = DeepGMR(width=0.125, k=8).eval(), _batch(b=2, n=96)
+    with torch.no_grad():
+        authors = model(src, ref)["transforms"][-1]
+        model.rri = "exact"
+        assert not torch.allclose(model(src, ref)["transforms"][-1], authors)
+    shipped = torch.load(SHIPPED_DIR / "deepgmr_real_airplane_ts_prnet.ckpt", map_location="cpu", weights_only=False)
+    assert shipped["hyper_parameters"]["network"]["rri"] == "exact"  # evaluated as it was trained

@@ -173,19 +173,31 @@ def test_official_gmm_register_is_weighted_procrustes_when_variances_are_equal()
                                atol=1e-5, rtol=0)
 
 
-def test_rri_features_are_rotation_and_translation_invariant():
+@pytest.mark.parametrize("projection", ["authors", "exact"])
+def test_rri_features_are_rotation_and_translation_invariant(projection):
     torch.manual_seed(0)
     pts = torch.randn(2, 60, 3, dtype=torch.float64)
-    feats = rri_features(pts, k=6)
+    feats = rri_features(pts, k=6, projection=projection)
     assert feats.shape == (2, 60, 24) and torch.isfinite(feats).all()
     moved = se3_apply(se3_from_rt(euler_to_matrix(torch.rand(2, 3, dtype=torch.float64) * 6, "zyx"),
                                   torch.randn(2, 3, dtype=torch.float64)), pts)
-    torch.testing.assert_close(rri_features(moved, k=6), feats, atol=1e-9, rtol=0)
+    torch.testing.assert_close(rri_features(moved, k=6, projection=projection), feats, atol=1e-9, rtol=0)
     r, theta, phi = feats[..., 0::4], feats[..., 2::4], feats[..., 3::4]
     torch.testing.assert_close(r, pts.sub(pts.mean(1, keepdim=True)).norm(dim=-1, keepdim=True).expand_as(r))
     assert (theta >= 0).all() and (theta <= torch.pi).all() and (phi >= 0).all() and (phi < 2 * torch.pi).all()
     # a mirror image is not a rotation: φ changes orientation
-    assert not torch.allclose(rri_features(pts * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64), k=6), feats)
+    assert not torch.allclose(rri_features(pts * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64), k=6,
+                                           projection=projection), feats)
+
+
+def test_rri_projections_differ_in_phi_only():
+    torch.manual_seed(0)
+    pts = torch.randn(1, 60, 3, dtype=torch.float64)
+    authors, exact = (rri_features(pts, k=6, projection=p).reshape(1, 60, 6, 4) for p in ("authors", "exact"))
+    torch.testing.assert_close(authors[..., :3], exact[..., :3], atol=0, rtol=0)  # ‖p‖, ‖q‖, θ
+    assert not torch.allclose(authors[..., 3], exact[..., 3])  # q − (p̂·q̂)p leaves the plane ⊥ p: φ's cosine moves
+    with pytest.raises(ValueError, match="projection must be one of"):
+        rri_features(pts, k=6, projection="plane")
 
 
 # --- configs and checkpoints -------------------------------------------------------------------
