@@ -89,18 +89,6 @@ def test_prnet_authors_network_refuses_what_their_code_cannot_be():
         authors_prnet.build_authors(None, {**network, "width": 0.125})
 
 
-@pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
-@pytest.mark.skipif(not os.environ.get("PRNET_AUTHORS_DIR"),
-                    reason="PRNET_AUTHORS_DIR (a checkout of WangYueFt/prnet) not set: their side is not checked")
-def test_prnet_authors_code_gives_its_golden_file(tmp_path):
-    from benchmarks.studies.golden.authors import prnet
-    from benchmarks.studies.golden.pairs import golden_pairs, prepare_cache
-
-    pairs = {k: v[:8] for k, v in golden_pairs(prepare_cache(tmp_path)).items()}  # one batch
-    estimates = prnet(Path(os.environ["PRNET_AUTHORS_DIR"]), pairs, torch.float64)
-    np.testing.assert_array_equal(estimates, golden_file.read_golden("prnet")["transforms"][:8])
-
-
 def test_deepgmr_authors_literals_are_scaled_as_ours_and_every_layer_is_mapped():
     namespace = authors_deepgmr._scaled_nn(0.5, (64, 128, 256, 512, 1024, 2048))
     assert namespace.Conv1d(80, 64, kernel_size=1).weight.shape[:2] == (32, 80)  # their first layer (model.py:124)
@@ -128,13 +116,19 @@ def test_deepgmr_authors_network_refuses_what_their_code_cannot_be():
         authors_deepgmr.build(None, {**network, "k": 16})  # 4k = 64 inputs, one of their width literals
 
 
+#: method -> (the variable naming a checkout of the authors' code, their repository).
+AUTHORS_CHECKOUTS = {"prnet": ("PRNET_AUTHORS_DIR", "WangYueFt/prnet"), "deepgmr": ("DEEPGMR_AUTHORS_DIR", "wentaoyuan/deepgmr")}
+
+
 @pytest.mark.shared_data("data/modelnet40_normal_resampled_airplane.zip")
-@pytest.mark.skipif(not os.environ.get("DEEPGMR_AUTHORS_DIR"),
-                    reason="DEEPGMR_AUTHORS_DIR (a checkout of wentaoyuan/deepgmr) not set: their side is not checked")
-def test_deepgmr_authors_code_gives_its_golden_file(tmp_path):
-    from benchmarks.studies.golden.authors import deepgmr
+@pytest.mark.parametrize("method", sorted(AUTHORS_CHECKOUTS))
+def test_the_authors_code_gives_its_golden_file(method, tmp_path):
+    from benchmarks.studies.golden import authors
     from benchmarks.studies.golden.pairs import golden_pairs, prepare_cache
 
+    variable, repo = AUTHORS_CHECKOUTS[method]
+    if not os.environ.get(variable):
+        pytest.skip(f"{variable} (a checkout of {repo}) not set: their side is not checked")
     pairs = {k: v[:8] for k, v in golden_pairs(prepare_cache(tmp_path)).items()}  # one batch
-    estimates = deepgmr(Path(os.environ["DEEPGMR_AUTHORS_DIR"]), pairs, torch.float64)
-    np.testing.assert_array_equal(estimates, golden_file.read_golden("deepgmr")["transforms"][:8])
+    estimates = getattr(authors, method)(Path(os.environ[variable]), pairs, torch.float64)
+    np.testing.assert_array_equal(estimates, golden_file.read_golden(method)["transforms"][:8])
