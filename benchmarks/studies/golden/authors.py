@@ -287,5 +287,5 @@ REFERENCES: dict[str, Reference] = {
     "deepgmr": Reference("wentaoyuan/deepgmr", "deepgmr_real_airplane_ts_prnet", deepgmr),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
-    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg")},
+    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp")},
 }

@@ -126,13 +126,49 @@ def _nearest_rotation(matrix: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
+#: Go-ICP's documented settings (``baselines/classical/goicp.py``, ``docs/methods/goicp.md``): MSE threshold 0.002,
+#: trim fraction 0.3, distance transform of 100 cells over twice the model's box, rotations in [-π, π]³ and
+#: translations in [-0.5, 0.5]³ of the normalised frame.
+GOICP_MSE, GOICP_TRIM, GOICP_DT_SIZE, GOICP_DT_FACTOR, GOICP_TRANSLATION = 0.002, 0.3, 100, 2.0, 0.5
+
+
+def goicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The authors' Go-ICP (py-goicp's ``GoICP``) with the wrapper's documented settings and conditioning: each
+    cloud centred on its centroid, both scaled by one factor into [-1, 1]³, data = ``src``, model = ``ref``; its
+    optimum (R, t') mapped back, t = c_ref − R c_src + s t', R (float) projected onto the nearest rotation."""
+    import py_goicp
+
+    src, ref = src.astype(np.float64), ref.astype(np.float64)
+    c_src, c_ref = src.mean(axis=0), ref.mean(axis=0)
+    scale = max(np.abs(src - c_src).max(), np.abs(ref - c_ref).max())
+    solver = py_goicp.GoICP()
+    model, data = ([py_goicp.POINT3D(*map(float, p)) for p in (c - centre) / scale] for c, centre in ((ref, c_ref), (src, c_src)))
+    solver.loadModelAndData(len(model), model, len(data), data)
+    solver.setDTSizeAndFactor(GOICP_DT_SIZE, GOICP_DT_FACTOR)
+    rotations, translations = py_goicp.ROTNODE(), py_goicp.TRANSNODE()
+    rotations.a = rotations.b = rotations.c = -np.pi
+    rotations.w = 2 * np.pi
+    translations.x = translations.y = translations.z = -GOICP_TRANSLATION
+    translations.w = 2 * GOICP_TRANSLATION
+    solver.setInitNodeRot(rotations)
+    solver.setInitNodeTrans(translations)
+    solver.MSEThresh, solver.trimFraction, solver.doTrim = GOICP_MSE, GOICP_TRIM, True
+    solver.BuildDT()
+    solver.Register()
+    rotation = _nearest_rotation(np.array(solver.optimalRotation()))
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rotation, c_ref - rotation @ c_src + scale * np.array(solver.optimalTranslation())
+    return out
+
+
 CALLS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr, "small_gicp": small_gicp,
-    "filterreg": filterreg}
+    "filterreg": filterreg, "goicp": goicp}
 #: The module each call needs, beside Open3D (an optional package of the framework).
-LIBRARIES = {"small_gicp": "small_gicp", "filterreg": "probreg"}
+LIBRARIES = {"small_gicp": "small_gicp", "filterreg": "probreg", "goicp": "py_goicp"}
 #: Each module's distribution (its version is recorded) and repository.
-PACKAGES = {"small_gicp": ("small_gicp", "koide3/small_gicp"), "probreg": ("probreg", "neka-nat/probreg")}
+PACKAGES = {"small_gicp": ("small_gicp", "koide3/small_gicp"), "probreg": ("probreg", "neka-nat/probreg"),
+            "py_goicp": ("py-goicp", "aalavandhaann/go-icp_cython")}
 
 
 def run(method: str, pairs: dict[str, np.ndarray]) -> np.ndarray:
