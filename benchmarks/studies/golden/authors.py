@@ -271,9 +271,9 @@ class Reference:
 
 def _library(method: str) -> Reference:
     """A classical method's reference: its library call (:mod:`benchmarks.studies.golden.library`), float64."""
-    from benchmarks.studies.golden.library import LIBRARIES, run
+    from benchmarks.studies.golden.library import LIBRARIES, PACKAGES, run
 
-    repo = "koide3/small_gicp" if method in LIBRARIES else "isl-org/Open3D"
+    repo = PACKAGES[LIBRARIES[method]][1] if method in LIBRARIES else "isl-org/Open3D"
     return Reference(repo, "", lambda checkout, pairs, dtype: run(method, pairs), library=True)
 
 
@@ -287,5 +287,5 @@ REFERENCES: dict[str, Reference] = {
     "deepgmr": Reference("wentaoyuan/deepgmr", "deepgmr_real_airplane_ts_prnet", deepgmr),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
-    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},
+    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp")},
 }

@@ -1,8 +1,9 @@
 """The classical methods' library calls on the golden pairs, written here from the libraries' documented APIs
 with the settings each wrapper's docstring gives (``baselines/classical/``): ``(pairs) -> (P, 4, 4)``.
 
-Every call is the library's own (Open3D's; small_gicp's), in float64, started from the identity; nothing of the
-wrappers runs here. Normals,
+Every call is the library's own (Open3D's; small_gicp's; probreg's; the authors' Go-ICP as py-goicp wraps it), in
+float64 (Go-ICP's C++ code computes in float), started from the identity, with the pair conditioning the wrapper
+documents; nothing of the wrappers runs here. Normals,
 where a method uses them, are Open3D's PCA normals over a hybrid neighbourhood (radius 0.1, at most 30
 neighbours), flipped to point away from the cloud's centroid (the wrappers' documented ``centroid`` orientation).
 Open3D runs on one thread (:func:`one_thread`): with more, its point-to-plane ICP is not reproducible from run
@@ -38,7 +39,10 @@ def library_version(method: str) -> str:
     """The library (and version) of ``method``'s call."""
     from importlib.metadata import version
 
-    return f"small_gicp {version('small_gicp')}" if method in LIBRARIES else f"open3d {_o3d().__version__}"
+    if method not in LIBRARIES:
+        return f"open3d {_o3d().__version__}"
+    distribution = PACKAGES[LIBRARIES[method]][0]
+    return f"{distribution} {version(distribution)}"
 
 
 def _cloud(points: np.ndarray, normals: bool = False):
@@ -99,10 +103,72 @@ def small_gicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
                     max_iterations=30, num_threads=1).T_target_source
 
 
+def filterreg(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """probreg's rigid point-to-point FilterReg with the wrapper's documented defaults
+    (``baselines/classical/filterreg.py``): probreg's (σ² from the data, ``w`` 0, 50 iterations, tolerance 1e-3,
+    minimum σ² 1e-4) but ``update_sigma2=True``; its rotation (composed of float32 Kabsch steps, off SO(3) by up
+    to 4e-5) projected onto the nearest rotation, as the wrapper documents; on one OpenMP thread."""
+    from probreg import filterreg as probreg_filterreg
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="openmp"):
+        result = probreg_filterreg.registration_filterreg(
+            src.astype(np.float64), ref.astype(np.float64), sigma2=None, update_sigma2=True, w=0.0,
+            objective_type="pt2pt", maxiter=50, tol=1e-3, min_sigma2=1e-4)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = _nearest_rotation(result.transformation.rot), result.transformation.t
+    return out
+
+
+def _nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest ``matrix`` (Frobenius): U diag(1, 1, det UVᵀ) Vᵀ of its SVD."""
+    u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+#: Go-ICP's documented settings (``baselines/classical/goicp.py``, ``docs/methods/goicp.md``): MSE threshold 0.002,
+#: trim fraction 0.3, distance transform of 100 cells over twice the model's box, rotations in [-π, π]³ and
+#: translations in [-0.5, 0.5]³ of the normalised frame.
+GOICP_MSE, GOICP_TRIM, GOICP_DT_SIZE, GOICP_DT_FACTOR, GOICP_TRANSLATION = 0.002, 0.3, 100, 2.0, 0.5
+
+
+def goicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The authors' Go-ICP (py-goicp's ``GoICP``) with the wrapper's documented settings and conditioning: each
+    cloud centred on its centroid, both scaled by one factor into [-1, 1]³, data = ``src``, model = ``ref``; its
+    optimum (R, t') mapped back, t = c_ref − R c_src + s t', R (float) projected onto the nearest rotation."""
+    import py_goicp
+
+    src, ref = src.astype(np.float64), ref.astype(np.float64)
+    c_src, c_ref = src.mean(axis=0), ref.mean(axis=0)
+    scale = max(np.abs(src - c_src).max(), np.abs(ref - c_ref).max())
+    solver = py_goicp.GoICP()
+    model, data = ([py_goicp.POINT3D(*map(float, p)) for p in (c - centre) / scale] for c, centre in ((ref, c_ref), (src, c_src)))
+    solver.loadModelAndData(len(model), model, len(data), data)
+    solver.setDTSizeAndFactor(GOICP_DT_SIZE, GOICP_DT_FACTOR)
+    rotations, translations = py_goicp.ROTNODE(), py_goicp.TRANSNODE()
+    rotations.a = rotations.b = rotations.c = -np.pi
+    rotations.w = 2 * np.pi
+    translations.x = translations.y = translations.z = -GOICP_TRANSLATION
+    translations.w = 2 * GOICP_TRANSLATION
+    solver.setInitNodeRot(rotations)
+    solver.setInitNodeTrans(translations)
+    solver.MSEThresh, solver.trimFraction, solver.doTrim = GOICP_MSE, GOICP_TRIM, True
+    solver.BuildDT()
+    solver.Register()
+    rotation = _nearest_rotation(np.array(solver.optimalRotation()))
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rotation, c_ref - rotation @ c_src + scale * np.array(solver.optimalTranslation())
+    return out
+
+
 CALLS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
-    "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr, "small_gicp": small_gicp}
-#: The library each call needs, beside Open3D (an optional package of the framework).
-LIBRARIES = {"small_gicp": "small_gicp"}
+    "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr, "small_gicp": small_gicp,
+    "filterreg": filterreg, "goicp": goicp}
+#: The module each call needs, beside Open3D (an optional package of the framework).
+LIBRARIES = {"small_gicp": "small_gicp", "filterreg": "probreg", "goicp": "py_goicp"}
+#: Each module's distribution (its version is recorded) and repository.
+PACKAGES = {"small_gicp": ("small_gicp", "koide3/small_gicp"), "probreg": ("probreg", "neka-nat/probreg"),
+            "py_goicp": ("py-goicp", "aalavandhaann/go-icp_cython")}
 
 
 def run(method: str, pairs: dict[str, np.ndarray]) -> np.ndarray:

@@ -27,7 +27,7 @@ METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "fmr": ("fmr", {}),
     "prnet": ("prnet", {"seed": NOISE_SEED}),  # the seed of its Gumbel noise, as the golden file's
     "deepgmr": ("deepgmr", {}),
-    **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp")},  # their defaults
+    **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp")},  # their defaults
 }
 BATCH = 8
 
