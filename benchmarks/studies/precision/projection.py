@@ -73,8 +73,8 @@ def _bucket(func: torch._ops.OpOverload) -> str:
 def step_profile(network: torch.nn.Module, batch: dict[str, torch.Tensor], precision: str, steps: int,
                  warmup: int) -> tuple[float, Counter[str], int]:
     """Median seconds of a plain step (no dispatch mode: float32 only, bf16 products being slow fallbacks here)
-    or ``nan``; median seconds per step of each operation under :class:`TimedOps` (:data:`PRODUCT` for the
-    products; ``"step"``: the timed step's total, the mode's own overhead included); its operation count."""
+    or ``nan``; of the median step under :class:`TimedOps`, the seconds of each operation (:data:`PRODUCT` for the
+    products; ``"step"``: the step's total, the mode's own overhead included) and its operation count."""
     step = training_step(network, batch, precision)
     for _ in range(warmup):
         step()
