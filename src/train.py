@@ -135,13 +135,15 @@ def train(cfg: DictConfig) -> dict[str, float]:
     refuse_empty_limits(cfg, datamodule, ("train", "val", "test"))
     start = time.perf_counter()
     with resuming_in_place(cfg.ckpt_path, cfg.output_dir):
-        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+        # weights_only=False: check_checkpoint has read the whole file already; checkpoints of earlier releases
+        # hold OmegaConf lists, which torch.load(weights_only=True) refuses
+        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path, weights_only=False)
     fit_seconds = time.perf_counter() - start
     require_training_steps(trainer, cfg)
     if not cfg.test_after_fit:
         return {}
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-    trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False)
+    trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False, weights_only=False)
     metrics = module.test_results
     report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
                         global_step=trainer.global_step, resumed_from=cfg.ckpt_path,

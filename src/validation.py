@@ -31,6 +31,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from src.data.transforms import NORMALS, PARTIAL_MANNERS, PERTURBATIONS, SAMPLINGS
+from src.utils.config_values import plain
 from src.utils.errors import ConfigError, user_error_behind
 from src.geometry.clouds import MIN_POINTS
 from src.utils.paths import REPO_ROOT
@@ -216,7 +217,7 @@ def _value(cfg: DictConfig, key: str) -> Any:
             raise user_error from None
         first = (str(err).strip().splitlines() or [type(err).__name__])[0]
         raise ConfigError(f"{key} cannot be resolved: {first}") from None
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+    return plain(value)
 
 
 def validate_config(cfg: DictConfig) -> None:

@@ -21,6 +21,7 @@ from src.data.dataset import EVAL_STREAM, TRAIN_STREAM, EpochSampler, EvalShardS
 from src.data.prepare import ensure_cache
 from src.data.pipelines import build_pair_transforms
 from src.data.transforms import NORMALS
+from src.utils.config_values import plain
 from src.utils.errors import ConfigError, DatasetError
 from src.utils.interrupts import loader_worker_init
 
@@ -138,10 +139,14 @@ class RegistrationDataModule(L.LightningDataModule):
             raise ConfigError(f"data.normals must be one of {NORMALS}, got {normals!r}")
         self.dataset, self.normals = dataset, normals
         self.cache_root = Path(cache_root).expanduser() if cache_root else default_cache_root()
-        self.splits = {k: dict(v) for k, v in (splits or {}).items()}
+        self.splits = plain(splits or {})
         unknown = set(self.splits) - set(STAGES)
         if unknown:
             raise ConfigError(f"data.splits has unknown stages {sorted(unknown)}; expected {STAGES}")
+        for stage, spec in self.splits.items():
+            if not isinstance(spec, Mapping):
+                raise ConfigError(f"data.splits.{stage}={spec!r} is invalid: it must be a mapping such as "
+                                  "{split: test, categories: [airplane], slice: [-100, null]}")
         self.remove_axisymmetric = remove_axisymmetric
         self.pair = dict(pair or {})
         check_pair_keys(self.pair)

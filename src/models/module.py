@@ -11,7 +11,6 @@ from typing import Any
 import hydra
 import lightning as L
 import torch
-from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import (
@@ -25,6 +24,7 @@ from torchmetrics import MeanMetric
 from src.metrics import METRIC_NAMES, SCORE, RegistrationMetrics
 from src.models.base import check_network
 from src.models.fp32_regions import keep_fp32
+from src.utils.config_values import plain
 from src.utils.errors import ConfigError, DivergenceError
 
 #: Lightning's learning-rate scheduler config (``scheduler``, ``interval``, ``monitor``).
@@ -32,9 +32,6 @@ SchedulerConfig = dict[str, Any]
 #: The number of optimiser steps of the whole run (asked only by schedules that need it).
 TotalSteps = Callable[[], int]
 
-
-def _plain(cfg: Any) -> Any:
-    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
 
 
 def _evaluate_calls(network: dict[str, Any]) -> dict[str, Any]:
@@ -177,8 +174,8 @@ class RegistrationModule(L.LightningModule):
         fp32_modules: Sequence[str] = (),
     ) -> None:
         super().__init__()
-        network = _evaluate_calls(_plain(network))
-        scheduler = check_scheduler(_plain(scheduler))
+        network = _evaluate_calls(plain(network))
+        scheduler = check_scheduler(plain(scheduler))
         if lr_milestones is not None:
             if scheduler is not None:
                 raise ConfigError("give model.scheduler or the older model.lr_milestones/lr_gamma, not both")

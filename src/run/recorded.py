@@ -27,6 +27,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from src.utils.config_values import plain
 from src.utils.errors import ConfigError
 
 
@@ -54,7 +55,7 @@ def refuse_unused_in_eval(cfg: DictConfig, hparams: Mapping[str, Any], ckpt_path
             names = [f"network.{k}" for k in _scaled_keys(cfg)] if key == "model_scale" else [key.removeprefix("model.")]
             for name in names:
                 theirs = _select(hparams, name)
-                if _plain(OmegaConf.select(cfg.model, name, default=None)) != theirs:
+                if plain(OmegaConf.select(cfg.model, name, default=None)) != theirs:
                     raise ConfigError(
                         f"{override} cannot take effect: src.eval rebuilds the network from {ckpt_path}, which has "
                         f"model.{name}={theirs}; evaluate a checkpoint trained with it, or drop the override"
@@ -176,6 +177,3 @@ def _select(tree: Mapping[str, Any], dotted: str) -> Any:
         node = node.get(part) if isinstance(node, Mapping) else None
     return node
 
-
-def _plain(value: Any) -> Any:
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value

@@ -19,6 +19,7 @@ import numpy as np
 
 from src.data.cache import Cache
 from src.data.datamodule import select_shapes
+from src.utils.config_values import plain
 from src.utils.errors import ConfigError
 
 KEY = "trained_on"
@@ -27,7 +28,7 @@ IDENTITY_KEYS = ("task", "dataset", "sampling", "partial")
 
 def trained_on_record(identity: Mapping[str, str], splits: Mapping[str, Any], remove_axisymmetric: bool) -> dict:
     """The ``trained_on`` entry of a checkpoint."""
-    return {**{k: str(identity[k]) for k in IDENTITY_KEYS}, "splits": {k: dict(v) for k, v in splits.items()},
+    return {**{k: str(identity[k]) for k in IDENTITY_KEYS}, "splits": plain(splits),
             "remove_axisymmetric": bool(remove_axisymmetric)}
 
 

@@ -140,6 +140,8 @@ def test_hydra_override_errors_are_one_line_exit_2(module, argv, message, monkey
     (src.eval, "partial=yy", "error: partial='yy' is invalid: it must be one of prnet, rpmnet, none"),
     # a UserError raised inside a constructor Hydra instantiates (and wraps): still one line
     (src.train, "+data.splits.extra={split: train}", "error: data.splits has unknown stages ['extra']"),
+    (src.train, "data.splits.train=5", "error: data.splits.train=5 is invalid: it must be a mapping such as "
+                                       "{split: test, categories: [airplane], slice: [-100, null]}"),
 ])
 def test_entry_points_stop_with_one_line(entry, override, message, tmp_path, capsys, cache):
     """``main`` below Hydra's decorator: exit_on_user_error(record_failures(...)), as the command runs it."""

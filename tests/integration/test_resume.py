@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from src.run.callbacks import RngState, set_rng_states
 from src.data.dataset import EpochSampler
@@ -237,3 +238,22 @@ def test_rng_state_round_trip():
     set_rng_states(state)
     again = (random.random(), np.random.rand(), torch.rand(3))
     assert drawn[:2] == again[:2] and torch.equal(drawn[2], again[2])
+
+
+def test_a_run_whose_data_splits_hold_lists_resumes_and_tests(tmp_path):
+    """Lists in the config (here ``data.splits.val.slice``, as in every real-data experiment) reach the
+    checkpoint's ``trained_on`` record as plain lists: the checkpoint loads with ``weights_only=True``,
+    ``ckpt_path=last`` resumes it and the best checkpoint is tested."""
+    run = tmp_path / "lists"
+    overrides = [o for o in RESUME_RUN if o != "test_after_fit=false"] + ["+data.splits.val.slice=[0,1]",
+                                                                          "trainer.max_steps=4", f"output_dir={run}"]
+    kill = [f"+callbacks.kill._target_={KillAt.__module__}.KillAt", "+callbacks.kill.step=3"]
+    with pytest.raises(RuntimeError, match="killed at step 3"):
+        train(tiny_config(tmp_path, *overrides, *kill))
+    last = run / "checkpoints" / "last.ckpt"
+    checkpoint = torch.load(last, weights_only=True)
+    assert checkpoint["trained_on"]["splits"]["val"]["slice"] == [0, 1]
+    checkpoint["trained_on"] = OmegaConf.create(checkpoint["trained_on"])  # as earlier releases wrote it
+    torch.save(checkpoint, last)
+    metrics = train(tiny_config(tmp_path, *overrides, "ckpt_path=last"))
+    assert torch.load(last, weights_only=True)["global_step"] == 4 and np.isfinite(metrics["Error(R)"])
