@@ -277,6 +277,14 @@ def _library(method: str) -> Reference:
     return Reference(repo, "", lambda checkout, pairs, dtype: run(method, pairs), library=True)
 
 
+def cpd(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
+    """Myronenko's CPD package (MATLAB, in GNU Octave), rigid with the scale fixed, float64
+    (:mod:`benchmarks.studies.golden.authors_cpd`)."""
+    from benchmarks.studies.golden.authors_cpd import cpd as authors_cpd
+
+    return authors_cpd(checkout, pairs)
+
+
 REFERENCES: dict[str, Reference] = {
     "dcp_v1": Reference("WangYueFt/dcp", "official:dcp_v1", dcp_v1),
     "omnet": Reference("hxwork/OMNet_Pytorch", "omnet_real_airplane_ts_prnet", omnet),
@@ -287,5 +295,7 @@ REFERENCES: dict[str, Reference] = {
     "deepgmr": Reference("wentaoyuan/deepgmr", "deepgmr_real_airplane_ts_prnet", deepgmr),
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
-    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp")},
+    "cpd": Reference("dpacheco0921/MeshVol_CPD_Registration", "", cpd),  # its core/: the CPD package (golden README)
+    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp",
+                                                "ransac", "ransac_icp")},
 }

@@ -93,6 +93,39 @@ def fgr(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return reg.registration_fgr_based_on_feature_matching(*clouds, *features, option).transformation
 
 
+#: RANSAC's documented defaults (``baselines/classical/ransac.py``): inlier distance 0.05 (0.075 refined by ICP),
+#: 3 matches a sample, no mutual filter, edge-length ratio 0.9, 100,000 iterations, confidence 0.999; the ICP
+#: refinement at correspondence distance 0.05 (``refine_distance``).
+RANSAC_DISTANCE, RANSAC_ICP_DISTANCE, RANSAC_N, EDGE_RATIO, RANSAC_ITERATIONS, CONFIDENCE = 0.05, 0.075, 3, 0.9, 100_000, 0.999
+REFINE_DISTANCE = 0.05
+
+
+def _ransac(src: np.ndarray, ref: np.ndarray, distance: float) -> np.ndarray:
+    """Open3D's RANSAC on FPFH matches (FGR's features), its sampler seeded with :data:`SEED` before the features."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(SEED)
+    clouds = [_cloud(points, normals=True) for points in (src, ref)]
+    features = [reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=FEATURE_MAX_NN))
+                for c in clouds]
+    return reg.registration_ransac_based_on_feature_matching(
+        *clouds, *features, False, distance, reg.TransformationEstimationPointToPoint(False), RANSAC_N,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(EDGE_RATIO), reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, CONFIDENCE)).transformation
+
+
+def ransac(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    return _ransac(src, ref, RANSAC_DISTANCE)
+
+
+def ransac_icp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """RANSAC at the refined row's inlier distance, then Open3D's point-to-point ICP from its pose."""
+    reg = _o3d().pipelines.registration
+    start = _ransac(src, ref, RANSAC_ICP_DISTANCE)
+    return reg.registration_icp(_cloud(src), _cloud(ref), REFINE_DISTANCE, start,
+                                reg.TransformationEstimationPointToPoint(False), _criteria()).transformation
+
+
 def small_gicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """small_gicp's GICP with the wrapper's documented defaults (``baselines/classical/smallgicp.py``):
     down-sampling 0.01, 20 neighbours, correspondence distance 1.0, 30 iterations, one thread."""
@@ -163,7 +196,7 @@ def goicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 CALLS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "icp": icp, "point_to_plane_icp": point_to_plane_icp, "gicp": gicp, "fgr": fgr, "small_gicp": small_gicp,
-    "filterreg": filterreg, "goicp": goicp}
+    "filterreg": filterreg, "goicp": goicp, "ransac": ransac, "ransac_icp": ransac_icp}
 #: The module each call needs, beside Open3D (an optional package of the framework).
 LIBRARIES = {"small_gicp": "small_gicp", "filterreg": "probreg", "goicp": "py_goicp"}
 #: Each module's distribution (its version is recorded) and repository.

@@ -16,6 +16,8 @@ from baselines import get_registrator
 from benchmarks.studies.golden.authors_prnet import NOISE_SEED
 from benchmarks.studies.golden.library import one_thread
 
+#: The classical golden methods: computed in float64 throughout, no float32 path to compare.
+CLASSICAL = ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp", "cpd", "ransac", "ransac_icp")
 #: golden method → (method key, registrator options).
 METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "learning3d_pointnetlk": ("pointnetlk", {"weights": "official:learning3d_pointnetlk"}),
@@ -27,7 +29,7 @@ METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "fmr": ("fmr", {}),
     "prnet": ("prnet", {"seed": NOISE_SEED}),  # the seed of its Gumbel noise, as the golden file's
     "deepgmr": ("deepgmr", {}),
-    **{key: (key, {}) for key in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp")},  # their defaults
+    **{key: (key, {}) for key in CLASSICAL},  # their defaults
 }
 #: Settings whose code default (the authors' computation) differs from what a shipped checkpoint records (how it was
 #: trained): its golden file holds the code's, so its weights run here with these.

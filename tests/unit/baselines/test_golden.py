@@ -59,7 +59,7 @@ FLOAT32_DEGREES = {"dcp_v1": 4.0, "idam": 4.0, "omnet": 5e-5, "learning3d_pointn
 #: instruction paths (benchmarks/results/float32_spread.md); float64 holds it to FLOAT64_DEGREES.
 FLOAT32_NOT_COMPARABLE = {"prnet"}
 METHODS = sorted(REFERENCES)
-LEARNED = sorted(m for m in METHODS if not REFERENCES[m].library)
+LEARNED = sorted(m for m in METHODS if m not in ours.CLASSICAL)
 
 
 def _files(method: str) -> list[str]:

@@ -41,7 +41,7 @@ def test_every_method_composes_and_registers_a_pair(method):
         src, ref = make_pair(TRUTH, 300, seed=1)
         try:
             registrator = get_registrator(method.key)
-        except ConfigError as err:  # an optional pip package not installed (small_gicp, pycpd); Go-ICP: its marker
+        except ConfigError as err:  # an optional pip package not installed (small_gicp, probreg); Go-ICP: its marker
             pytest.skip(str(err))
     else:
         model = compose_model_config(method.key, 0.125)  # conf/model/<key>.yaml
