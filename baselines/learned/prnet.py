@@ -52,9 +52,6 @@ from src.geometry import se3_apply
 from src.models.base import scaled
 
 SAMPLERS = ("gumbel_softmax", "softmax")
-#: The transformer's LayerNorm: the official code's (unbiased std, epsilon added to it: WangYueFt/prnet model.py:159-169)
-#: or PyTorch's ``nn.LayerNorm`` (with which checkpoints written before this option were trained).
-LAYER_NORMS = ("authors", "torch")
 
 
 class PRNet(nn.Module):
@@ -80,8 +77,6 @@ class PRNet(nn.Module):
         layer_norm: str = "authors",
     ) -> None:
         super().__init__()
-        if layer_norm not in LAYER_NORMS:
-            raise ValueError(f"layer_norm must be one of {LAYER_NORMS}, got {layer_norm!r}")
         if sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
         if num_iters < 1:
@@ -92,7 +87,7 @@ class PRNet(nn.Module):
         self.discount, self.cycle_weight, self.feature_alignment_weight = discount, cycle_weight, feature_alignment_weight
         self.embedding = DGCNN([scaled(c, width) for c in (64, 64, 128, 256)], emb, k=k, dynamic=True, negative_slope=0.2)
         self.pointer = AttentionPointer(emb, n_blocks, n_heads, scaled(ff_dims, width), dropout, negative_slope=0.2,
-                                        authors_norm=layer_norm == "authors")
+                                        layer_norm=layer_norm)
         self.temperature_net = MLP([emb, hidden, hidden, hidden, 1], last_activation=False, bias=True)
 
     @property

@@ -207,6 +207,10 @@ class _DecoderLayer(nn.Module):
         return x + self.ff(self.norms[2](x))
 
 
+#: The LayerNorms of :class:`AttentionPointer`: the official code's (``authors``) and PyTorch's (``torch``).
+LAYER_NORMS: dict[str, type[nn.Module]] = {"authors": AuthorsLayerNorm, "torch": nn.LayerNorm}
+
+
 class AttentionPointer(nn.Module):
     """DCP's attention "pointer" φ (a transformer encoder–decoder, Vaswani et al.).
 
@@ -214,13 +218,16 @@ class AttentionPointer(nn.Module):
     decoded against the other cloud's encoded features, with the same weights in both directions.
     Pre-norm residual sub-layers and a final LayerNorm in the encoder and the decoder, as the
     official DCP/PRNet code; ``negative_slope`` is the feed-forward LeakyReLU slope (0 = ReLU, DCP;
-    0.2 for PRNet); ``authors_norm``: the code's LayerNorm (:class:`AuthorsLayerNorm`), else ``nn.LayerNorm``.
+    0.2 for PRNet); ``layer_norm``: ``authors`` for the code's LayerNorm (:class:`AuthorsLayerNorm`), ``torch``
+    for ``nn.LayerNorm``.
     """
 
     def __init__(self, d_model: int = 512, n_blocks: int = 1, n_heads: int = 4, ff_dims: int = 1024,
-                 dropout: float = 0.0, negative_slope: float = 0.0, authors_norm: bool = False) -> None:
+                 dropout: float = 0.0, negative_slope: float = 0.0, layer_norm: str = "torch") -> None:
         super().__init__()
-        norm = AuthorsLayerNorm if authors_norm else nn.LayerNorm
+        if layer_norm not in LAYER_NORMS:
+            raise ValueError(f"layer_norm must be one of {sorted(LAYER_NORMS)}, got {layer_norm!r}")
+        norm = LAYER_NORMS[layer_norm]
         args = (d_model, n_heads, ff_dims, dropout, negative_slope, norm)
         self.encoder = nn.ModuleList(_EncoderLayer(*args) for _ in range(n_blocks))
         self.decoder = nn.ModuleList(_DecoderLayer(*args) for _ in range(n_blocks))

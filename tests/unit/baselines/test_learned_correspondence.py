@@ -168,7 +168,7 @@ def test_the_authors_layer_norm_divides_by_the_unbiased_std_plus_eps_and_keeps_t
     with_eps = AuthorsLayerNorm(8, eps=0.5).double()
     torch.testing.assert_close(with_eps(x), (x - x.mean(-1, keepdim=True)) / (x.std(-1, keepdim=True) + 0.5))
     assert list(theirs.state_dict()) == list(torchs.state_dict())  # checkpoints of either load into the other
-    pointer = AttentionPointer(8, n_heads=2, ff_dims=16, authors_norm=True)
+    pointer = AttentionPointer(8, n_heads=2, ff_dims=16, layer_norm="authors")
     norms = [m for m in pointer.modules() if isinstance(m, torch.nn.LayerNorm)]
     assert len(norms) == 7 and all(isinstance(m, AuthorsLayerNorm) for m in norms)
 
