@@ -62,13 +62,13 @@ def expectation(ref: np.ndarray, centroids: np.ndarray, sigma2: float, w: float)
     N ``ref`` points, with the kernel exp(−|x − y|² / 2σ²)."""
     n, d = ref.shape
     m = centroids.shape[0]
-    squared = cdist(centroids, ref, "sqeuclidean")  # (M, N), from the differences as the authors' cpd_P.c
-    kernel = np.exp(squared / (-2.0 * sigma2))
+    kernel = cdist(centroids, ref, "sqeuclidean")  # (M, N), from the differences as the authors' cpd_P.c
+    np.exp(np.divide(kernel, -2.0 * sigma2, out=kernel), out=kernel)  # in place: at 4,096 points each is 128 MiB
     uniform = w * m * (2.0 * np.pi * sigma2) ** (0.5 * d) / ((1.0 - w) * n)
     total = kernel.sum(axis=0) + uniform  # (N,)
     reached = total > 0
     inverse = np.divide(1.0, total, out=np.zeros_like(total), where=reached)
-    posterior = kernel * inverse
+    posterior = np.multiply(kernel, inverse, out=kernel)
     pt1 = np.where(reached, 1.0 - uniform * inverse, 0.0)
     nll = float(-np.log(total[reached]).sum() + d * n * np.log(sigma2) / 2.0)
     return Responsibilities(posterior.sum(axis=1), pt1, posterior @ ref, nll)
