@@ -163,19 +163,22 @@ def test_a_missing_optional_package_names_the_extra_that_installs_it(method, mon
     assert any(requirement.startswith(PACKAGES[method]) for requirement in extras[extra]), (extra, extras[extra])
 
 
-def test_point_to_plane_icp_runs_open3d_on_one_thread_and_restores_the_limit(monkeypatch):
-    """Open3D's point-to-plane ICP depends on its threads' order on a pair near a tie: it runs on one thread."""
+@pytest.mark.parametrize("method, call", [("point_to_plane_icp", "registration_icp"),
+                                          ("ransac", "registration_ransac_based_on_feature_matching")])
+def test_open3d_calls_whose_result_depends_on_the_thread_count_run_on_one_thread(method, call, monkeypatch):
+    """Point-to-plane ICP depends on its threads' order on a pair near a tie, RANSAC's draws on the thread count: both
+    run on one Open3D thread, and the previous limit is restored."""
     from baselines.classical import _open3d
 
     utility = _open3d.open3d().utility
     before, seen = utility.get_max_threads(), []
-    estimation = _open3d.open3d().pipelines.registration.registration_icp
+    estimation = getattr(_open3d.open3d().pipelines.registration, call)
 
     def recording(*args, **kwargs):
         seen.append(utility.get_max_threads())
         return estimation(*args, **kwargs)
 
-    monkeypatch.setattr(_open3d.open3d().pipelines.registration, "registration_icp", recording)
+    monkeypatch.setattr(_open3d.open3d().pipelines.registration, call, recording)
     src = np.random.default_rng(0).normal(size=(200, 3))
-    get_registrator("point_to_plane_icp").register(src, src + 0.01)
+    get_registrator(method).register(src, src + 0.01)
     assert seen == [1] and utility.get_max_threads() == before
