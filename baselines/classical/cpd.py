@@ -13,8 +13,9 @@ authors' (their CPD package, ``cpd_register.m`` with ``opt.scale=0, opt.normaliz
 
 Where every kernel of a reference point underflows to 0 (only possible with ``w = 0``, at a small σ², for a point
 far from every centroid: a partial cloud's non-overlapping part) the authors' code divides 0 by 0; here that point
-gets no responsibility and leaves the M-step. The golden file checks the whole against the authors' code
-(``benchmarks/studies/golden``). Each EM step holds an N×M matrix, so a cloud is registered with at most
+gets no responsibility and leaves the M-step; where none is left (N_P = 0: the clouds lie so far apart that the
+uniform term explains every point) their code divides 0 by 0, and this one stops with a PointCloudError. The golden
+file checks the whole against the authors' code (``benchmarks/studies/golden``). Each EM step holds an N×M matrix, so a cloud is registered with at most
 ``point_budget = 4,096`` points (voxel down-sampled beyond, :mod:`baselines.conditioning`). Defaults: the authors'
 150 iterations and tolerance 1e-5 (``cpd_register.m``); outlier weight 0.9 (theirs 0.1), chosen on training pairs
 of partial clouds (``docs/methods/cpd.md``).
@@ -30,6 +31,7 @@ from scipy.spatial.distance import cdist
 
 from baselines.base import Registrator, RegistratorConfig, _positive, _within
 from src.geometry.numpy_rigid import rigid_transform
+from src.utils.errors import PointCloudError
 
 
 @dataclass
@@ -88,6 +90,10 @@ def rigid_cpd(ref: np.ndarray, src: np.ndarray, w: float, max_iterations: int, t
         p1, pt1, px, nll = expectation(ref, moved, sigma2, w)
         change = abs((nll - previous) / nll)
         mass = pt1.sum()
+        if not mass > 0:
+            raise PointCloudError(
+                f"CPD: every reference point is explained by the outlier term alone (σ² {sigma2:.3g}, w {w}): the clouds "
+                "lie too far apart for it; pre-align them (e.g. by their centroids) or lower w")
         mu_ref, mu_src = ref.T @ pt1 / mass, src.T @ p1 / mass
         a = px.T @ src - mass * np.outer(mu_ref, mu_src)
         u, singular, vt = np.linalg.svd(a)

@@ -87,6 +87,17 @@ def test_cpd_leaves_out_a_reference_point_that_no_centroid_reaches():
     np.testing.assert_allclose(step.p1.sum(), 2.0)
 
 
+def test_cpd_stops_with_one_line_when_the_outlier_term_explains_every_point():
+    """Found by the property suite: two 3-point clouds ~1.5e5 apart; the uniform term's weight grows with σ³, so no
+    reference point was left to any centroid (N_P = 0), and the M-step divided by zero into an SVD error."""
+    src = np.array([[100000.126, 99999.868, 100000.640], [100000.105, 99999.464, 100000.362],
+                    [100001.304, 100000.947, 99999.296]])
+    ref = np.array([[68126.120, 155943.719, -32257.015], [68126.108, 155943.337, -32256.707],
+                    [68128.048, 155943.319, -32257.709]])
+    with pytest.raises(PointCloudError, match=r"^CPD: every reference point is explained by the outlier term alone"):
+        get_registrator("cpd").register(src, ref)
+
+
 def test_filterreg_returns_a_rotation_after_many_iterations():
     """probreg composes float32 Kabsch steps unrenormalised: after 200 steps its rotation was off SO(3) by more
     than the 1e-4 at which an estimate counts as non-rigid, and the pair failed."""

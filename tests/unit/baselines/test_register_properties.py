@@ -67,7 +67,7 @@ def _holds_the_contract(name: str, src: np.ndarray, ref: np.ndarray) -> np.ndarr
     return transform
 
 
-@pytest.mark.parametrize("name", ["icp", "fgr"])
+@pytest.mark.parametrize("name", ["icp", "fgr", "cpd", "ransac"])
 @settings(max_examples=40)
 @given(pair=clouds())
 def test_a_classical_method_gives_a_rigid_transform_or_one_line(name, pair):
