@@ -80,13 +80,18 @@ def gicp(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         reg.TransformationEstimationForGeneralizedICP(GICP_EPSILON), _criteria()).transformation
 
 
-def fgr(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+def _seeded_features(src: np.ndarray, ref: np.ndarray) -> tuple[list, list]:
+    """Open3D's sampler seeded with :data:`SEED`, then both clouds with normals and their FPFH features (FGR's)."""
     o3d = _o3d()
-    reg = o3d.pipelines.registration
     o3d.utility.random.seed(SEED)
     clouds = [_cloud(points, normals=True) for points in (src, ref)]
-    features = [reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=FEATURE_MAX_NN))
-                for c in clouds]
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=FEATURE_MAX_NN)
+    return clouds, [o3d.pipelines.registration.compute_fpfh_feature(c, search) for c in clouds]
+
+
+def fgr(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    reg = _o3d().pipelines.registration
+    clouds, features = _seeded_features(src, ref)
     option = reg.FastGlobalRegistrationOption(  # Open3D's defaults, named (fgr.py)
         division_factor=1.4, use_absolute_scale=False, decrease_mu=True, maximum_correspondence_distance=0.025,
         iteration_number=64, tuple_scale=0.95, maximum_tuple_count=1000)
@@ -102,12 +107,8 @@ REFINE_DISTANCE = 0.05
 
 def _ransac(src: np.ndarray, ref: np.ndarray, distance: float) -> np.ndarray:
     """Open3D's RANSAC on FPFH matches (FGR's features), its sampler seeded with :data:`SEED` before the features."""
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    o3d.utility.random.seed(SEED)
-    clouds = [_cloud(points, normals=True) for points in (src, ref)]
-    features = [reg.compute_fpfh_feature(c, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS, max_nn=FEATURE_MAX_NN))
-                for c in clouds]
+    reg = _o3d().pipelines.registration
+    clouds, features = _seeded_features(src, ref)
     return reg.registration_ransac_based_on_feature_matching(
         *clouds, *features, False, distance, reg.TransformationEstimationPointToPoint(False), RANSAC_N,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(EDGE_RATIO), reg.CorrespondenceCheckerBasedOnDistance(distance)],
