@@ -13,12 +13,15 @@ False: 53 %, 11.1°; ``docs/methods/filterreg.md``). probreg composes its rotati
 steps without renormalising (|RᵀR − I| up to 4e-5 after 50 steps, 1e-4 past ~200, where an estimate counts as
 non-rigid): the rotation returned is its nearest rotation. Its Kabsch and kernel sums are OpenMP reductions, whose
 result depends on the thread count (0.15° apart between 1 and 2 threads on the golden pairs): it runs on one
-OpenMP thread (``threadpoolctl``, in the extra).
+OpenMP thread (``threadpoolctl``, in the extra). Its E-step's lattice takes positions in units of σ: a pair
+reaching past :data:`LATTICE_REACH` of them (clouds ~1e7 times their size apart) crashes probreg's process, so such a
+pair is refused with one line.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -28,6 +31,13 @@ import numpy as np
 from baselines.base import Registrator, RegistratorConfig, _positive, _within
 from baselines.classical._optional import NeedsPackage
 from src.geometry.numpy_rigid import project_to_rotation, rigid_transform
+from src.utils.errors import PointCloudError
+
+
+#: Farthest coordinate, in units of the smallest σ, handed to probreg: its permutohedral lattice registered a pair
+#: reaching 1.1e8 of them (two clouds 9e6 apart in the working frame, σ 0.01) and aborted the process at 1.25e8
+#: (``free(): invalid size``); refused with a margin of 4.5.
+LATTICE_REACH = 2.5e7
 
 
 @dataclass
@@ -67,6 +77,12 @@ class FilterReg(NeedsPackage, Registrator):
         from threadpoolctl import threadpool_limits
 
         cfg: FilterRegConfig = self.config
+        sigma = math.sqrt(min(cfg.min_sigma2, cfg.sigma2 if cfg.sigma2 is not None else math.inf))
+        reach = max(float(np.abs(src).max()), float(np.abs(ref).max())) / sigma
+        if reach > LATTICE_REACH:
+            raise PointCloudError(
+                f"FilterReg: the pair reaches {reach:.3g} σ from its centre (σ {sigma:.3g}), beyond the {LATTICE_REACH:.3g} "
+                "that probreg's lattice holds (its process crashes there): pre-align the clouds, or raise min_sigma2")
         with threadpool_limits(1, user_api="openmp"):  # its reductions' sums depend on the thread count
             result = registration_filterreg()(
                 src, ref, sigma2=cfg.sigma2, update_sigma2=bool(cfg.update_sigma2), w=float(cfg.w),

@@ -98,6 +98,15 @@ def test_cpd_stops_with_one_line_when_the_outlier_term_explains_every_point():
         get_registrator("cpd").register(src, ref)
 
 
+def test_filterreg_refuses_a_pair_beyond_its_lattice_with_one_line():
+    """Found by the property suite: probreg's lattice takes positions in units of σ, and two clouds 1e7 apart aborted
+    the whole process (``free(): invalid size``); 9e6 registered. Now refused before probreg is called."""
+    _needs("filterreg")
+    src = np.random.default_rng(0).normal(size=(200, 3))
+    with pytest.raises(PointCloudError, match=r"^FilterReg: the pair reaches 1.25e\+08 σ from its centre"):
+        get_registrator("filterreg").register(src, src + [1e7, 0.0, 0.0])
+
+
 def test_filterreg_returns_a_rotation_after_many_iterations():
     """probreg composes float32 Kabsch steps unrenormalised: after 200 steps its rotation was off SO(3) by more
     than the 1e-4 at which an estimate counts as non-rigid, and the pair failed."""
