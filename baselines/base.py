@@ -21,8 +21,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from baselines.conditioning import POINT_BUDGET, condition
-from baselines.result import FIT_THRESHOLD, RegistrationResult, check_threshold, one_line
-from src.utils.errors import ConfigError, PointCloudError
+from baselines.result import FIT_THRESHOLD, RegistrationResult, check_threshold, one_line, transform_problem
+from src.utils.errors import ConfigError, PointCloudError, RegistrationError
 from src.geometry.clouds import check_batch, check_cloud
 
 __all__ = ["Registrator", "RegistratorConfig"]
@@ -104,12 +104,13 @@ class Registrator(ABC):
         """Estimate ``T`` (4, 4) with ``ref ≈ T[:3, :3] @ src + T[:3, 3]``.
 
         ``src`` is (N, 3) and ``ref`` (M, 3); N and M may differ. Raises PointCloudError for
-        bad inputs. Registers in the working frame and within the point budget
-        (:mod:`baselines.conditioning`); the result is returned as float64 as the method produced it (mapped back
-        to the input's frame); :meth:`register_result` (which the runners use) also rejects
-        non-rigid estimates and reports the time, failures and the inlier fit.
+        bad inputs, and RegistrationError where the method's estimate is no rigid transform (NaN, a
+        reflection: :func:`~baselines.result.transform_problem`). Registers in the working frame and within the
+        point budget (:mod:`baselines.conditioning`); the result is returned as float64 as the method produced it
+        (mapped back to the input's frame); :meth:`register_result` (which the runners use) reports such failures
+        in its result instead, with the time and the inlier fit.
         """
-        return self._register_conditioned(check_cloud(src, "src"), check_cloud(ref, "ref"))
+        return self._rigid(self._register_conditioned(check_cloud(src, "src"), check_cloud(ref, "ref")))
 
     def register_result(
         self, src: Any, ref: Any, threshold: float | None = FIT_THRESHOLD, timeout_s: float | None = None
@@ -149,6 +150,8 @@ class Registrator(ABC):
                 f"{self.name}: _register_batch returned shape {out.shape}, "
                 f"expected ({src_arr.shape[0]}, 4, 4)"
             )
+        for index, estimate in enumerate(out):
+            self._rigid(estimate, f" of pair {index}")
         return out
 
     def setup(self) -> None:
@@ -171,6 +174,15 @@ class Registrator(ABC):
         Learned adapters override this to run the batch through the network at once.
         """
         return np.stack([self._register_conditioned(s, r) for s, r in zip(src, ref)])
+
+    def _rigid(self, estimate: np.ndarray, which: str = "") -> np.ndarray:
+        """``estimate``, or RegistrationError where it is no proper rigid transform."""
+        problem = transform_problem(estimate)
+        if problem is not None:
+            raise RegistrationError(f"{self.name}: the estimate{which} is no rigid transform ({problem}): the pair is "
+                                    "outside what this method handles (far outliers, too few points?); check the "
+                                    "clouds, or try another method")
+        return estimate
 
     def _register_conditioned(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """:meth:`_register` of a checked pair in the working frame, within the point budget."""

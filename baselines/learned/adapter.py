@@ -42,9 +42,9 @@ from baselines.base import Registrator, RegistratorConfig
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
-from src.geometry.clouds import check_cloud
+from src.geometry.clouds import MIN_POINTS, check_cloud
 from src.models.pretrained import verify_card
-from src.utils.errors import CheckpointError, ConfigError
+from src.utils.errors import CheckpointError, ConfigError, PointCloudError
 from src.utils.paths import SHIPPED_DIR
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "run_batches"]
@@ -279,6 +279,9 @@ class LearnedRegistrator(Registrator):
         import torch
 
         module = self.module
+        need, fewest = getattr(module.network, "min_points", MIN_POINTS), min(src.shape[-2], ref.shape[-2])
+        if fewest < need:
+            raise PointCloudError(f"{self.name}: each cloud needs at least {need} points for this network, got {fewest}")
         with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []), torch.inference_mode():
             torch.manual_seed(self.config.seed)
             points_src = torch.as_tensor(src, dtype=torch.float32, device=self.device)

@@ -48,6 +48,7 @@ from baselines.learned.common.global_feature import (
 )
 from baselines.learned.common.layers import MLP
 from src.geometry import se3_inverse
+from src.geometry.clouds import MIN_POINTS
 from src.models.base import MIN_CHANNELS, scaled
 
 
@@ -91,6 +92,11 @@ class DeepGMR(nn.Module):
             with full_precision(points.device):
                 return rri_features(at_least_fp32(points), self.k, self.rri)
         return points - points.mean(dim=1, keepdim=True)
+
+    @property
+    def min_points(self) -> int:
+        """Fewest points per cloud: the RRI features take each point's k nearest other points."""
+        return self.k + 1 if self.use_rri else MIN_POINTS
 
     def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:
         logits_src = self.backbone(self.point_features(points_src))

@@ -27,6 +27,10 @@ class PointCloudError(UserError):
     """Empty, NaN or wrongly shaped point clouds."""
 
 
+class RegistrationError(UserError):
+    """A method's estimate for a pair is no rigid transform (NaN, a reflection): the pair is outside what it handles."""
+
+
 class ConfigError(UserError):
     """Unknown experiment, model, method or config key."""
 

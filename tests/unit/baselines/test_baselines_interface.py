@@ -20,7 +20,7 @@ from baselines import (
 from baselines.conditioning import POINT_BUDGET, budget_voxel_size, condition, voxel_down_sample, working_frame
 from baselines.registry import _REGISTRY
 from baselines.testing import ToyRegistrator, euler_transform, l_shape_surface, make_pair
-from src.utils.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError, RegistrationError
 from src.geometry.numpy_rigid import project_to_rotation
 
 
@@ -249,6 +249,18 @@ def test_register_result_records_failures_and_raises_on_bad_input():
     assert slow.failed and slow.timed_out and slow.reason.startswith("timed out: took")
     with pytest.raises(PointCloudError, match="src: needs at least 3 points"):
         ToyRegistrator().register_result(src[:2], ref)
+
+
+@pytest.mark.parametrize("option, problem", [("nan_on", "contains NaN"), ("scale_on", "not orthonormal")])
+def test_register_never_returns_an_estimate_that_is_no_rigid_transform(option, problem):
+    """Found by generated pairs: FMR and PointNetLK-Revisited returned all-NaN transforms, exit 0, on a pair with one
+    point 2e9 from the others; register_result flagged them, register handed them on."""
+    src, ref = make_pair(euler_transform((0, 0, 0), (0.1, 0.0, 0.0)), 40, seed=0)
+    toy = ToyRegistrator(**{option: (40,)})
+    for call in (lambda: toy.register(src, ref), lambda: toy.register_batch(src[None], ref[None])):
+        with pytest.raises(RegistrationError, match=rf"^toy: the estimate( of pair 0)? is no rigid transform \(.*{problem}"):
+            call()
+    assert np.isfinite(ToyRegistrator().register(src, ref)).all()
 
 
 @pytest.mark.parametrize("points, kind", [  # converted silently before: True -> 1.0, 1+2j -> 1.0, "0.5" -> 0.5

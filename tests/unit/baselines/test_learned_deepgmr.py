@@ -97,3 +97,16 @@ def test_the_rri_projection_is_the_codes_unless_a_checkpoint_was_trained_with_th
         assert not torch.allclose(model(src, ref)["transforms"][-1], authors)
     shipped = torch.load(SHIPPED_DIR / "deepgmr_real_airplane_ts_prnet.ckpt", map_location="cpu", weights_only=False)
     assert shipped["hyper_parameters"]["network"]["rri"] == "exact"  # evaluated as it was trained
+
+
+def test_a_cloud_with_fewer_points_than_the_rri_neighbours_is_one_line():
+    """Found by generated pairs: 3-point clouds reached top-k of the k = 20 neighbours and a RuntimeError traceback."""
+    import numpy as np
+
+    from baselines import get_registrator
+    from src.utils.errors import PointCloudError
+
+    points = np.random.default_rng(0).normal(size=(20, 3))
+    with pytest.raises(PointCloudError, match=r"^deepgmr: each cloud needs at least 21 points for this network, got 20$"):
+        get_registrator("deepgmr").register(points, points)
+    assert DeepGMR(width=0.125, k=8, use_rri=False).min_points == 3 and DeepGMR(width=0.125, k=8).min_points == 9
