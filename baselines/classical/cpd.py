@@ -2,14 +2,18 @@
 
 The source points are the centroids of a Gaussian mixture fitted by EM to the reference points, with a uniform
 component of weight ``w`` for points that no centroid explains, under a rigid motion. The iteration is the
-authors' (their CPD package, ``cpd_register.m`` with ``opt.scale=0, opt.normalize=0``: ``cpd_rigid.m``'s
-``scale=0`` branch, E-step ``cpd_P.c``), in NumPy and float64:
+authors' (their CPD package, ``cpd_register.m`` with ``opt.scale=0, opt.normalize=0``, which it otherwise turns
+back into ``scale=1``, line 120: ``cpd_rigid.m``'s ``scale=0`` branch, E-step ``cpd_P.c``), in NumPy and float64
+(lines of the copy the golden file ran, dpacheco0921/MeshVol_CPD_Registration@5a74b8a ``core/``; the same iteration
+as fieldtrip/fieldtrip ``external/cpd/core``):
 
-* σ² starts from the mean squared distance of all pairs of points;
-* each E-step gives the responsibilities and the negative log-likelihood L; EM stops after ``max_iterations``
-  steps, once the relative change of L is at most ``tolerance``, or once σ² ≤ 10 eps;
-* each M-step solves the rotation by SVD (no reflection) and, the scale being 1,
-  σ² = (tr(X̂ᵀ d(Pᵀ1) X̂) + tr(Ŷᵀ d(P1) Ŷ) − 2 tr(AᵀR)) / (N_P D) (the paper's Fig. 2 gives the scaled case only).
+* σ² starts from the mean squared distance of all pairs of points (``cpd_rigid.m:66``);
+* each E-step gives the responsibilities and the negative log-likelihood L (``cpd_P.c:35-73``); EM stops after
+  ``max_iterations`` steps, once the relative change of L is at most ``tolerance``, or once σ² ≤ 10 eps
+  (``cpd_rigid.m:76, 86``);
+* each M-step solves the rotation by SVD (no reflection, ``cpd_rigid.m:98``) and, the scale being 1,
+  σ² = (tr(X̂ᵀ d(Pᵀ1) X̂) + tr(Ŷᵀ d(P1) Ŷ) − 2 tr(AᵀR)) / (N_P D) (``cpd_rigid.m:106``; the paper's Fig. 2 gives
+  the scaled case only).
 
 Where every kernel of a reference point underflows to 0 (only possible with ``w = 0``, at a small σ², for a point
 far from every centroid: a partial cloud's non-overlapping part) the authors' code divides 0 by 0; here that point
@@ -17,7 +21,7 @@ gets no responsibility and leaves the M-step; where none is left (N_P = 0: the c
 uniform term explains every point) their code divides 0 by 0, and this one stops with a PointCloudError. The golden
 file checks the whole against the authors' code (``benchmarks/studies/golden``). Each EM step holds an N×M matrix, so a cloud is registered with at most
 ``point_budget = 4,096`` points (voxel down-sampled beyond, :mod:`baselines.conditioning`). Defaults: the authors'
-150 iterations and tolerance 1e-5 (``cpd_register.m``); outlier weight 0.9 (theirs 0.1), chosen on training pairs
+150 iterations and tolerance 1e-5 (``cpd_register.m:90-91``); outlier weight 0.9 (theirs 0.1, line 94), chosen on training pairs
 of partial clouds (``docs/methods/cpd.md``).
 """
 

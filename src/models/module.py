@@ -33,7 +33,6 @@ SchedulerConfig = dict[str, Any]
 TotalSteps = Callable[[], int]
 
 
-
 def _evaluate_calls(network: dict[str, Any]) -> dict[str, Any]:
     """Arguments given as calls (``{_target_: fn, ...}``, e.g. FMR's decoder size from ``data.pair``)
     replaced by their values, so that the checkpoint's network config holds plain numbers."""

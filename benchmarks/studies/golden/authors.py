@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from benchmarks.studies.golden.library import CALLS, LIBRARIES, PACKAGES
+from benchmarks.studies.golden.library import run as library_call
 from src.utils.errors import ConfigError
 
 BATCH = 8
@@ -141,6 +143,8 @@ def rpmnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> 
         raise ConfigError(f"the shipped RPM-Net checkpoint takes normals {settings['normals']!r}: the golden pairs carry none")
     theirs = authors_network(checkout, ours, settings)
     return _batched(pairs, dtype, lambda src, ref: authors_estimate(theirs, ours, src, ref, settings["num_iters"]).double().numpy())
+
+
 def prnet(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """WangYueFt/prnet's PRNet with the shipped PRNet checkpoint's weights, its layers at the checkpoint's width,
     drawing our Gumbel noise as ours does (:mod:`benchmarks.studies.golden.authors_prnet`)."""
@@ -164,6 +168,8 @@ def fmr(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.
     ours, network = shipped_network("fmr", dtype)
     theirs = authors_network(checkout, ours, network)
     return _batched(pairs, dtype, lambda src, ref: pose(theirs, src, ref))
+
+
 def deepgmr(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
     """wentaoyuan/deepgmr's DeepGMR with the shipped DeepGMR checkpoint's weights, its layers at the checkpoint's
     width, given the RRI features their data loader computes (:mod:`benchmarks.studies.golden.authors_deepgmr`); in
@@ -271,10 +277,8 @@ class Reference:
 
 def _library(method: str) -> Reference:
     """A classical method's reference: its library call (:mod:`benchmarks.studies.golden.library`), float64."""
-    from benchmarks.studies.golden.library import LIBRARIES, PACKAGES, run
-
     repo = PACKAGES[LIBRARIES[method]][1] if method in LIBRARIES else "isl-org/Open3D"
-    return Reference(repo, "", lambda checkout, pairs, dtype: run(method, pairs), library=True)
+    return Reference(repo, "", lambda checkout, pairs, dtype: library_call(method, pairs), library=True)
 
 
 def cpd(checkout: Path, pairs: dict[str, np.ndarray], dtype: torch.dtype) -> np.ndarray:
@@ -296,6 +300,5 @@ REFERENCES: dict[str, Reference] = {
     "learning3d_pointnetlk": Reference("vinits5/learning3d", "official:learning3d_pointnetlk", learning3d_pointnetlk),
     "pointnetlk_revisited": Reference("Lilac-Lee/PointNetLK_Revisited", "official:pointnetlk_revisited", pointnetlk_revisited),
     "cpd": Reference("dpacheco0921/MeshVol_CPD_Registration", "", cpd),  # its core/: the CPD package (golden README)
-    **{method: _library(method) for method in ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp",
-                                                "ransac", "ransac_icp")},
+    **{method: _library(method) for method in CALLS},
 }

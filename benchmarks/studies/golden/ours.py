@@ -14,10 +14,10 @@ import torch
 
 from baselines import get_registrator
 from benchmarks.studies.golden.authors_prnet import NOISE_SEED
-from benchmarks.studies.golden.library import one_thread
+from benchmarks.studies.golden.library import CALLS, one_thread
 
-#: The classical golden methods: computed in float64 throughout, no float32 path to compare.
-CLASSICAL = ("icp", "point_to_plane_icp", "gicp", "fgr", "small_gicp", "filterreg", "goicp", "cpd", "ransac", "ransac_icp")
+#: The classical golden methods (the library calls and CPD): computed in float64 throughout, no float32 path to compare.
+CLASSICAL = (*CALLS, "cpd")
 #: golden method → (method key, registrator options).
 METHODS: dict[str, tuple[str, dict[str, str | int]]] = {
     "learning3d_pointnetlk": ("pointnetlk", {"weights": "official:learning3d_pointnetlk"}),
