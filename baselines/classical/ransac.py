@@ -11,9 +11,10 @@ reached. ``refine_icp`` runs :class:`~baselines.classical.icp.ICP` from RANSAC's
 distance ``refine_distance`` (:class:`RANSACICP`, the row ``ransac_icp``, has it on). Defaults, from sweeps on 30
 training pairs (PRNet manner, TS, clean): ``distance_threshold`` 0.05 (RANSAC: 90 % under 5°; Open3D's tutorial
 rule 1.5 × 0.05 = 0.075: 57 %) and 0.075 (RANSAC + ICP: 100 %, mean 0.59°). Open3D samples at random: ``seed`` makes
-each call deterministic for a given number of threads, but its parallel loop draws differently with each thread count
-(3 of the 24 golden pairs ended up to 8.6° apart between 1 and 2 threads), so RANSAC runs on one Open3D thread and a
-cell is the same on every machine. The other defaults are Open3D's tutorial's;
+each call deterministic on one thread only: with more, its parallel loop draws differently from run to run and with
+the thread count (golden pairs: 3-5 of 24 up to 8.6° apart between 1 and 2 threads, 1-2 up to 4.4° apart between two
+runs on 2 threads; ``python -m benchmarks.studies.golden.threads``), so RANSAC runs on one Open3D thread and a cell is
+the same on every run and machine. The other defaults are Open3D's tutorial's;
 the sweeps: ``docs/methods/ransac.md``.
 """
 

@@ -186,7 +186,7 @@ def test_a_missing_optional_package_names_the_extra_that_installs_it(method, mon
 @pytest.mark.parametrize("method, call", [("point_to_plane_icp", "registration_icp"),
                                           ("ransac", "registration_ransac_based_on_feature_matching")])
 def test_open3d_calls_whose_result_depends_on_the_thread_count_run_on_one_thread(method, call, monkeypatch):
-    """Point-to-plane ICP depends on its threads' order on a pair near a tie, RANSAC's draws on the thread count: both
+    """Point-to-plane ICP depends on its threads' order on a pair near a tie, RANSAC's draws vary from run to run on more than one thread: both
     run on one Open3D thread, and the previous limit is restored."""
     from baselines.classical import _open3d
 
