@@ -31,6 +31,8 @@ class TestSet:
     cfg: DictConfig
     dataset: Any  # src.data.dataset.PairDataset
     definition: dict[str, Any]
+    categories: tuple[str, ...] = ()
+    """The cache's category names (a pair's shape label indexes them)."""
     _pairs: list | None = None
     _raw: list | None = None
 
@@ -86,4 +88,5 @@ def build_test_set(experiment: str, sampling: str, partial: str, data: str | Non
         definition["splits"] = {"test": data_cfg["splits"]["test"]}
     definition["content_hash"] = datamodule.cache.manifest.get("content_hash")
     definition["num_test_pairs"] = len(datamodule.datasets["test"])
-    return TestSet(experiment, sampling, partial, cfg, datamodule.datasets["test"], definition)
+    return TestSet(experiment, sampling, partial, cfg, datamodule.datasets["test"], definition,
+                   tuple(getattr(datamodule.cache, "categories", ())))  # scan pairs: no categories

@@ -7,9 +7,10 @@ value such as ``data.pair.noise_sigma=-1`` or ``data.batch_size=abc`` stops with
 with a silently different setting or failing deep inside with a traceback.
 
 :data:`RULES` is the one table: dotted key -> :class:`Rule`. A rule applies when its key is in the
-config (the network keys only for the networks that have them); keys without a rule (new
-switches, per-model ``recipe`` blocks) and values computed at instantiation (a node with a
-``_target_``) are not this module's business and pass. A top-level key that no config file of the
+config (the network keys only for the networks that have them). A key without a rule, of a node that builds an
+object, must have the type the constructor's annotation names (``trainer.devices=1.5``, ``trainer.precision=abc``:
+:func:`_check_options`); other keys (per-model ``recipe`` blocks), interpolations and values computed at
+instantiation (a node with a ``_target_``) are not this module's business and pass. A top-level key that no config file of the
 application has (``+trainer_max_steps=5``, ``+foo=1``) is refused (:func:`check_top_level_keys`): nothing
 reads it. (A ``data.pair.num_points`` that a cache layout cannot honour is refused once the cache is open:
 :func:`src.data.datamodule.check_pair_layout`.)
@@ -17,13 +18,17 @@ reads it. (A ``data.pair.num_points`` that a cache layout cannot honour is refus
 
 from __future__ import annotations
 
+import collections.abc
 import difflib
 import functools
 import inspect
 import math
+import os
+import types
+import typing
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import hydra
@@ -42,7 +47,7 @@ CONF_DIR = REPO_ROOT / "conf"
 @dataclass(frozen=True)
 class Rule:
     """What a value must be: an ``int``/``float``/``bool`` within optional bounds (``low_open`` /
-    ``high_open``: strict), one of ``choices``, or a list of such values (``each``)."""
+    ``high_open``: strict), one of ``choices``, a non-empty path (``str``), or a list of such values (``each``)."""
 
     kind: type = float
     low: float | None = None
@@ -58,6 +63,8 @@ class Rule:
     def describe(self) -> str:
         if self.choices:
             text = f"one of {', '.join(self.choices)}"
+        elif self.kind is str:
+            text = "a non-empty path"
         elif self.kind is bool:
             text = "true or false"
         else:
@@ -85,6 +92,8 @@ class Rule:
             return True
         if self.choices:
             return isinstance(value, str) and value in self.choices
+        if self.kind is str:
+            return isinstance(value, str) and bool(value.strip())
         if self.kind is bool or isinstance(value, bool):
             return self.kind is bool and isinstance(value, bool)
         if not isinstance(value, (int, float)) or (self.kind is int and not isinstance(value, int)):
@@ -110,6 +119,7 @@ SEED = Rule(int, 0, 2**32 - 1)  # what NumPy and Lightning accept
 NON_NEGATIVE = number(0.0)
 FRACTION = number(0.0, 1.0, low_open=True)  # (0, 1]
 FLAG = Rule(bool)
+PATH = Rule(str, nullable=True)  # a file; empty (``ckpt_path=``) is no path: null is "none"
 
 _NETWORK_COUNTS = ("num_iters", "num_train_iters", "num_sk_iter", "max_iter", "n_blocks", "n_heads", "k", "emb_dims",
                    "ff_dims", "d_model", "n_clusters", "dim_k", "feat_dim", "num_neighbors", "normals_k",
@@ -129,6 +139,9 @@ RULES: dict[str, Rule] = {
     "model_scale": POSITIVE,
     "test_after_fit": FLAG,
     "force_precision": FLAG,
+    "ckpt_path": PATH,
+    "init_weights": PATH,
+    "weights": PATH,
     # data (conf/data/base.yaml)
     "data.pair.sampling": Rule(str, choices=SAMPLINGS),
     "data.pair.partial": Rule(str, choices=PARTIAL_MANNERS),
@@ -227,7 +240,7 @@ def validate_config(cfg: DictConfig) -> None:
     check_top_level_keys(cfg, "config")
     _check_rules(cfg, RULES)
     for path, node in _object_nodes(cfg):
-        _check_options(path, node)
+        _check_options(cfg, path, node)
     _check_precision(cfg)
 
 
@@ -278,8 +291,8 @@ def top_level_keys(app: str) -> tuple[str, ...]:
     """Every top-level key that a config of ``app`` can have, read from ``conf/``: ``config`` (``src.train``,
     ``src.eval``: ``conf/config.yaml``, its groups and the ``@package _global_`` files of experiments,
     sweeps and recipes) or ``benchmark_grid`` (``benchmarks.grid``: ``conf/benchmark/*.yaml``)."""
-    if app == "benchmark_grid":
-        files = sorted((CONF_DIR / "benchmark").glob("*.yaml"))
+    if app == "benchmark_grid":  # its grid files, and the data configs it composes (a `_global_` one sets sampling)
+        files = sorted((CONF_DIR / "benchmark").glob("*.yaml")) + sorted((CONF_DIR / "data").glob("*.yaml"))
         keys = {"benchmark", "method_options", "data", "hydra"}
     else:
         files = [CONF_DIR / "config.yaml"] + sorted(
@@ -337,24 +350,105 @@ def _object_nodes(node: Any, path: str = "") -> Iterator[tuple[str, DictConfig]]
 _HYDRA_KEYS = ("_target_", "_recursive_", "_convert_", "_partial_", "_args_")
 
 
-def _check_options(path: str, node: DictConfig) -> None:
+#: Values settled before their object is built, taken besides its type: ``trainer.precision=auto`` (:mod:`src.run.precision`).
+_SETTLED_BEFORE_BUILD: dict[str, Any] = {"trainer.precision": typing.Literal["auto"]}
+
+
+def _check_options(cfg: DictConfig, path: str, node: DictConfig) -> None:
     """ConfigError for a key of ``node`` that its ``_target_`` does not take (e.g. ``+trainer.max_step=5``,
-    or ``+data.foo=1``, which would fail deep inside the constructor or be silently dropped)."""
+    or ``+data.foo=1``, which would fail deep inside the constructor or be silently dropped), then for a value
+    whose type the parameter's annotation rules out (``trainer.devices=1.5``, ``trainer.enable_progress_bar=abc``,
+    ``+trainer.min_steps=2.5``: a traceback, or run as something else); a key of :data:`RULES` is its rule's."""
     try:
         target = hydra.utils.get_object(str(node._get_node("_target_")._value()))
         parameters = inspect.signature(target).parameters.values()
     except Exception:  # noqa: BLE001 - an unknown target or a builtin: instantiation reports it
         return
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
-        return
-    takes = [p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL]
-    unknown = [str(k) for k in node.keys() if str(k) not in _HYDRA_KEYS and str(k) not in takes]
-    if unknown:
-        key = unknown[0]
-        close = difflib.get_close_matches(key, takes, n=3)
-        hint = f"did you mean {', '.join(close)}?" if close else f"it takes {', '.join(takes)}"
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        takes = [p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL]
+        unknown = [str(k) for k in node.keys() if str(k) not in _HYDRA_KEYS and str(k) not in takes]
+        if unknown:
+            key = unknown[0]
+            close = difflib.get_close_matches(key, takes, n=3)
+            hint = f"did you mean {', '.join(close)}?" if close else f"it takes {', '.join(takes)}"
+            where = f"{path}.{key}" if path else key
+            raise ConfigError(f"{where} is not an option of {node._get_node('_target_')._value()}: {hint}")
+    hints = _parameter_types(target)
+    for key in map(str, node.keys()):
         where = f"{path}.{key}" if path else key
-        raise ConfigError(f"{where} is not an option of {node._get_node('_target_')._value()}: {hint}")
+        if key not in hints or where in RULES or node._get_node(key)._is_interpolation():
+            continue  # (an interpolation, e.g. ${output_dir}/checkpoints: what it names is checked where it is set)
+        hint = typing.Union[hints[key], _SETTLED_BEFORE_BUILD[where]] if where in _SETTLED_BEFORE_BUILD else hints[key]
+        value = _value(cfg, where)
+        if not (isinstance(value, dict) and "_target_" in value) and not _fits(value, hint):
+            raise ConfigError(f"{where}={_show(value)} is invalid: it must be {_describe_type(hint)}")
+
+
+@functools.cache
+def _parameter_types(target: Any) -> dict[str, Any]:
+    """The annotated types of the parameters of ``target`` (a class: its ``__init__``); none if they cannot be read."""
+    try:
+        return typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+    except Exception:  # noqa: BLE001 - an annotation naming what its module does not import: nothing to check
+        return {}
+
+
+_LISTS = (list, tuple, collections.abc.Sequence, collections.abc.Iterable, collections.abc.Collection)
+_MAPPINGS = (dict, collections.abc.Mapping)
+_PATHS = (Path, PurePath, os.PathLike)
+_WORDS = {bool: ("true or false", "true/false values"), int: ("an integer", "integers"), float: ("a number", "numbers"),
+          str: ("a string", "strings")}
+
+
+def _fits(value: Any, hint: Any) -> bool:
+    """Whether a config value (plain: None, bool, int, float, str, list, dict) can be of type ``hint``; True for a
+    type no config value is written as (a class, ``Any``, a callable): its constructor judges it."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, arg) for arg in args)
+    if origin is typing.Literal:
+        return any(type(value) is type(choice) and value == choice for choice in args)
+    if hint is type(None):
+        return value is None
+    if hint in _WORDS:  # (bool is an int in Python, an integer in a config is no float and no flag)
+        exact = isinstance(value, hint) and (hint is bool or not isinstance(value, bool))
+        return exact or (hint is float and isinstance(value, int) and not isinstance(value, bool))
+    if hint in _PATHS:
+        return isinstance(value, str)
+    container = origin or hint
+    if container in _LISTS:
+        if not isinstance(value, list):
+            return False
+        each = [a for a in args if a is not Ellipsis]
+        kinds = each if container is tuple and len(each) > 1 else each[:1] * len(value)
+        return all(_fits(v, t) for v, t in zip(value, kinds))
+    if container in _MAPPINGS:
+        return isinstance(value, dict)
+    return True
+
+
+def _describe_type(hint: Any) -> str:
+    """``hint`` in words: ``a list of integers, a string or an integer``, ``true or false (or null)``."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        choices = list(dict.fromkeys(str(c) for a in args if typing.get_origin(a) is typing.Literal
+                                     for c in typing.get_args(a)))  # (32 and '32' alike)
+        parts = [_describe_type(a) for a in args if a is not type(None) and typing.get_origin(a) is not typing.Literal]
+        parts += [_describe_type(typing.Literal[tuple(choices)])] if choices else []
+        text = ", ".join(parts[:-1]) + f" or {parts[-1]}" if len(parts) > 1 else parts[0]
+        return text + (" (or null)" if type(None) in args else "")
+    if origin is typing.Literal:
+        return f"one of {', '.join(map(str, args))}" if len(args) > 1 else str(args[0])
+    if hint in _WORDS:
+        return _WORDS[hint][0]
+    if hint in _PATHS:
+        return "a path"
+    if (origin or hint) in _MAPPINGS:
+        return "a mapping"
+    if (origin or hint) in _LISTS:
+        each = [a for a in args if a is not Ellipsis]
+        return f"a list of {_WORDS[each[0]][1]}" if len(set(each)) == 1 and each[0] in _WORDS else "a list"
+    return f"a {getattr(hint, '__name__', hint)}"
 
 
 def _show(value: Any) -> str:

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Sequence
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -46,6 +47,7 @@ from baselines.methods import display_name  # noqa: E402
 from benchmarks.tables.paper import attach_paper, canonical_experiment, default_paper_dir, load_paper_tables  # noqa: E402
 from benchmarks.tables.render import HIGHER_IS_BETTER, default_out, read_inputs  # noqa: E402
 from src.utils.errors import UserError  # noqa: E402
+from src.utils.files import read_parquet  # noqa: E402
 from src.metrics import ERROR_R, ERROR_T, MAE_R, MAE_T, RMSE_R, RMSE_T, SUCCESS_THRESHOLDS  # noqa: E402
 
 
@@ -274,7 +276,7 @@ def grid_pairs(grid_dir: Path, test_set) -> pd.DataFrame:
     path = grid_dir / "pairs.parquet"
     if not path.is_file():
         raise ValueError(f"{path} does not exist: run `python -m benchmarks.grid` first")
-    rows = pd.read_parquet(path)
+    rows = read_parquet(path)
     rows = rows[(rows["experiment"] == test_set.experiment) & (rows["sampling"] == test_set.sampling.upper())
                 & (rows["partial"] == test_set.partial)]
     if rows.empty:
@@ -361,19 +363,30 @@ def plot_error_vs_overlap(rows: pd.DataFrame, path: Path, title: str, bins: Sequ
     ax.set_title(title, fontsize=10)
     fig.text(0.5, 0.01, "One marker per ordered scan pair; bars: each method's median in the overlap bin.",
              ha="center", va="bottom", fontsize=8)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    return _save(fig, path, rect=(0, 0.03, 1, 1))
+
+
+def _save(fig: plt.Figure, path: Path, rect: tuple[float, float, float, float] = (0, 0, 1, 1)) -> Path:
+    """``fig`` laid out within ``rect`` and written to ``path`` (its folder made), then closed."""
+    fig.tight_layout(rect=rect)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
 
-def scan_pairs_main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.plots scan-pairs",
-                                     description="Errors of a +benchmark=scan_pairs grid against the pairs' overlap.")
-    parser.add_argument("grid_dir", type=Path, help="the grid's output folder (outputs/grid/scan_pairs)")
-    parser.add_argument("overrides", nargs="*", help="the data overrides the grid ran with, e.g. data.pair.min_overlap=0.2")
+def _grid_parser(command: str, description: str, example: str) -> argparse.ArgumentParser:
+    """The arguments every grid plot takes: the grid's folder, its data overrides, ``--out``."""
+    parser = argparse.ArgumentParser(prog=f"python -m benchmarks.plots {command}", description=description)
+    parser.add_argument("grid_dir", type=Path, help=f"the grid's output folder (e.g. {example})")
+    parser.add_argument("overrides", nargs="*", help="the data overrides the grid ran with")
     parser.add_argument("--out", type=Path, default=None, help="folder for the PNG and the Markdown (default: grid_dir)")
+    return parser
+
+
+def scan_pairs_main(argv: list[str]) -> int:
+    parser = _grid_parser("scan-pairs", "Errors of a +benchmark=scan_pairs grid against the pairs' overlap.",
+                          "outputs/grid/scan_pairs")
     args = parser.parse_args(argv)
     out = args.out or args.grid_dir
     try:
@@ -391,10 +404,94 @@ def scan_pairs_main(argv: list[str]) -> int:
     return 0
 
 
+def category_rows(grid_dir: Path, experiment: str, sampling: str, partial: str, data: str | None,
+                  overrides: Sequence[str] = ()) -> pd.DataFrame:
+    """The per-pair rows of a grid's cells of one experiment with each pair's shape ``category`` and the method's
+    display ``label``; the test set is rebuilt from the experiment, ``data`` (None: the dataset the cells record)
+    and ``overrides`` (the grid's)."""
+    from src.pair_sets import build_test_set
+
+    if data is None:  # the data the grid's cells of this experiment ran on
+        path = grid_dir / "pairs.parquet"
+        ran = read_parquet(path) if path.is_file() else pd.DataFrame(columns=["experiment", "dataset"])
+        datasets = ran.loc[ran["experiment"] == experiment, "dataset"].unique()
+        data = str(datasets[0]) if len(datasets) == 1 else None
+    test_set = build_test_set(experiment, sampling, partial, data, overrides)
+    rows = grid_pairs(grid_dir, test_set)
+    pairs = test_set.dataset
+    names = test_set.categories
+    shape_labels = np.asarray(pairs.labels)[np.asarray(pairs.shape_indices)]
+    meta = pd.DataFrame({"pair": np.arange(len(pairs)), "category": [names[label] for label in shape_labels]})
+    rows = rows.merge(meta, on="pair", validate="many_to_one")
+    rows["label"] = rows["method"].map(display_name)
+    return rows
+
+
+def category_table(rows: pd.DataFrame) -> str:
+    """Markdown: per category (rows, with its pair count) and method (columns, in grid order), the mean Error(R)."""
+    methods = list(dict.fromkeys(rows["label"]))
+    means = rows.pivot_table(index="category", columns="label", values=ERROR_R, aggfunc="mean")[methods]
+    counts = rows[rows["label"] == methods[0]].groupby("category").size()
+    lines = ["**Error(R), mean (degrees), per category**", "", "| Category | pairs | " + " | ".join(methods) + " |",
+             "|:---|---:|" + "---:|" * len(methods)]
+    for category, values in means.iterrows():
+        lines.append(f"| {category} | {counts[category]} | " + " | ".join(f"{v:.2f}" for v in values) + " |")
+    overall = rows.groupby("label", sort=False)[ERROR_R].mean()[methods]
+    lines.append(f"| all | {int(counts.sum())} | " + " | ".join(f"{v:.2f}" for v in overall) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_error_by_category(rows: pd.DataFrame, path: Path, title: str) -> Path:
+    """Each method's mean Error(R) (log scale) per category, the categories in the order of the first method's
+    error, one colour and marker per method."""
+    methods = list(dict.fromkeys(rows["label"]))
+    means = rows.pivot_table(index="category", columns="label", values=ERROR_R, aggfunc="mean")[methods]
+    means = means.sort_values(methods[-1])
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(means) + 2), 4.6))
+    markers = "os^vDPX*<>"
+    for i, method in enumerate(methods):
+        ax.plot(range(len(means)), means[method].clip(lower=1e-2), marker=markers[i % len(markers)], lw=1,
+                label=method)
+    ax.set_xticks(range(len(means)), means.index, rotation=60, ha="right", fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylabel("Error(R), mean over the category's pairs (degrees)")
+    ax.grid(alpha=0.3, which="both", axis="y")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
+def categories_main(argv: list[str]) -> int:
+    parser = _grid_parser("categories", "Errors of a grid's experiment per shape category: a table and a figure.",
+                          "outputs/grid/table1_npy")
+    parser.add_argument("--experiment", default="unseen_categories", help="conf/exp/<name>.yaml (default unseen_categories)")
+    parser.add_argument("--sampling", default="os")
+    parser.add_argument("--partial", default="prnet")
+    parser.add_argument("--data", default=None, help="the data config (default: the one the grid's cells ran on)")
+    args = parser.parse_args(argv)
+    out = args.out or args.grid_dir
+    try:
+        rows = category_rows(args.grid_dir, args.experiment, args.sampling, args.partial, args.data, args.overrides)
+    except (ValueError, UserError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    table = category_table(rows)
+    stem = f"{args.experiment}_{args.sampling}_{args.partial}_by_category"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.md").write_text(table)
+    title = f"{args.experiment} ({args.sampling.upper()}, {args.partial}): rotation error per category"
+    png = plot_error_by_category(rows, out / f"{stem}.png", title)
+    print(table)
+    print(f"wrote {png}, {out / f'{stem}.md'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["scan-pairs"]:
         return scan_pairs_main(argv[1:])
+    if argv[:1] == ["categories"]:
+        return categories_main(argv[1:])
     parser = argparse.ArgumentParser(prog="python -m benchmarks.plots", description=__doc__.split("\n\n")[0])
     parser.add_argument("inputs", nargs="+", help="collected frames (.parquet/.csv) or multirun dirs")
     parser.add_argument("--out", type=Path, default=None, help="folder for the figures (default: beside the first input)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 import functools
 import inspect
+import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from src.utils.errors import ConfigError, DatasetError
 from src.utils.interrupts import loader_worker_init
 
 STAGES = ("train", "val", "test")
+log = logging.getLogger(__name__)
 
 
 def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmetric: bool) -> list[str]:
@@ -45,35 +47,100 @@ def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmet
     return [c for c in names if not (remove_axisymmetric and c in AXISYMMETRIC_CATEGORIES)]
 
 
+SPEC_KEYS = ("split", "categories", "slice", "carve", "exclude", "repeat", "instead", "when_missing")
+"""What a ``data.splits.<stage>`` entry may hold (:func:`select_shapes`)."""
+
+
 def select_shapes(
     cache: Cache, spec: Mapping[str, Any], remove_axisymmetric: bool, stages: Mapping[str, Mapping] | None = None,
 ) -> tuple[str, np.ndarray]:
-    """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['slice']``
-    (``[start, stop]`` as a Python slice over them in split-list order, e.g. ``[-100, null]``), less the
-    shapes of the ``stages`` that ``spec['exclude']`` names (e.g. ``[val]``: several categories but one
-    category's validation carve-out), then each repeated ``spec['repeat']`` times (several fixed pairs
-    per shape, e.g. for a few real scans)."""
+    """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['carve']``
+    (``[seed, start, stop]``: per category, the fractions ``[start, stop)`` of a permutation seeded by ``seed``
+    and the category, e.g. a stratified validation carve-out), then ``spec['slice']`` (``[start, stop]`` as a
+    Python slice over them in split-list order, e.g. ``[-100, null]``), less the shapes of the ``stages``
+    that ``spec['exclude']`` names (e.g. ``[val]``: several categories but one category's validation
+    carve-out; a stage drawn from another split excludes none), then each repeated ``spec['repeat']`` times
+    (several fixed pairs per shape, e.g. for a few real scans). Where the cache has not built the split
+    ``spec['when_missing']`` (default: ``spec['split']``; e.g. a withheld test split), ``spec['instead']``
+    is selected in its place (:func:`effective_spec`)."""
+    spec = effective_spec(cache, spec)
+    unknown = set(spec) - set(SPEC_KEYS)
+    if unknown:
+        raise ConfigError(f"data.splits entries take {', '.join(SPEC_KEYS)}; unknown: {sorted(unknown)}")
     split = cache.split(spec["split"])
     categories = resolve_categories(spec.get("categories", "all"), cache, remove_axisymmetric)
     wanted = [cache.categories.index(c) for c in categories]
-    indices = np.flatnonzero(np.isin(np.asarray(split.labels), wanted))
+    labels = np.asarray(split.labels)
+    indices = np.flatnonzero(np.isin(labels, wanted))
+    if spec.get("carve") is not None:
+        indices = _carve(indices, labels[indices], spec["carve"])
     bounds = spec.get("slice")
     if bounds is not None:
         indices = indices[slice(*(None if b is None else int(b) for b in bounds))]
     for stage in spec.get("exclude", ()):
         other = (stages or {}).get(stage)
-        if other is None or "exclude" in other or other["split"] != spec["split"]:
-            raise ConfigError(f"data.splits exclude: {stage!r} must be a stage of split {spec['split']!r} without exclude")
-        indices = indices[~np.isin(indices, select_shapes(cache, other, remove_axisymmetric)[1])]
-    unknown = set(spec) - {"split", "categories", "slice", "exclude", "repeat"}
-    if unknown:
-        raise ConfigError(
-            f"data.splits entries take split, categories, slice, exclude and repeat; unknown: {sorted(unknown)}"
-        )
+        if other is None or "exclude" in effective_spec(cache, other):
+            raise ConfigError(f"data.splits exclude: {stage!r} must be a stage without exclude")
+        other_split, other_indices = select_shapes(cache, other, remove_axisymmetric)
+        if other_split == spec["split"]:
+            indices = indices[~np.isin(indices, other_indices)]
     repeat = int(spec.get("repeat", 1))
     if repeat < 1:
         raise ConfigError(f"data.splits repeat must be >= 1, got {repeat}")
     return spec["split"], np.tile(indices, repeat)
+
+
+def effective_spec(cache: Cache, spec: Mapping[str, Any]) -> Mapping[str, Any]:
+    """``spec['instead']`` where the cache has not built the split ``spec['when_missing']`` (default:
+    ``spec['split']``), else ``spec`` without those two keys."""
+    if not isinstance(spec.get("split"), str):
+        raise ConfigError(f"data.splits entry {dict(spec)} names no split: give split: train or split: test")
+    if not _uses_instead(cache, spec):
+        return {key: value for key, value in spec.items() if key not in ("instead", "when_missing")}
+    if not isinstance(spec["instead"], Mapping) or "instead" in spec["instead"]:
+        raise ConfigError(f"data.splits instead: {spec['instead']!r} must be one split entry without instead")
+    return spec["instead"]
+
+
+def _uses_instead(cache: Cache, spec: Mapping[str, Any]) -> bool:
+    return "instead" in spec and spec.get("when_missing", spec["split"]) not in cache.available_splits
+
+
+def resolve_splits(cache: Cache, splits: Mapping[str, Mapping[str, Any]]) -> tuple[dict, list[str]]:
+    """Every stage's :func:`effective_spec`, and one line for each stage that uses its ``instead``."""
+    resolved, notes = {}, []
+    for stage, spec in splits.items():
+        resolved[stage] = plain(effective_spec(cache, spec))
+        if _uses_instead(cache, spec):
+            needed = spec.get("when_missing", spec["split"])
+            notes.append(f"data.splits.{stage}: the {cache.dataset} cache has no {needed} split "
+                         f"({_missing_count(cache, needed)}): using its stated alternative {resolved[stage]}")
+    return resolved, notes
+
+
+def _missing_count(cache: Cache, split: str) -> str:
+    missing = cache.manifest.get("missing_splits", {}).get(split)
+    return f"{missing['count']} shapes withheld" if missing and missing.get("count") else "not built"
+
+
+def _carve(indices: np.ndarray, labels: np.ndarray, carve: Sequence[Any]) -> np.ndarray:
+    """The ``[start, stop)`` fractions of each category's seeded permutation (``carve = [seed, start, stop]``),
+    in split-list order; the same seed's fractions ``[a, b)`` and ``[b, c)`` never share a shape."""
+    try:
+        seed, start, stop = int(carve[0]), float(carve[1]), float(carve[2])
+        ok = len(carve) == 3 and 0.0 <= start <= stop <= 1.0
+    except (TypeError, ValueError, IndexError):
+        ok = False
+    if not ok:
+        raise ConfigError(f"data.splits carve={list(carve) if isinstance(carve, Sequence) else carve!r} is invalid: "
+                          "give [seed, start, stop] with 0 <= start <= stop <= 1")
+    kept = []
+    for label in np.unique(labels):
+        members = indices[labels == label]
+        order = np.random.default_rng([seed, int(label)]).permutation(len(members))
+        bounds = [int(round(f * len(members))) for f in (start, stop)]
+        kept.append(members[order[bounds[0]:bounds[1]]])
+    return np.sort(np.concatenate(kept)) if kept else indices[:0]
 
 
 #: Layouts whose clouds are whole samplings of a shape (``data.pair.num_points`` picks no points there).
@@ -163,6 +230,9 @@ class RegistrationDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.cache is None:
             self.cache = ensure_cache(self.dataset, self.cache_root, **self.build)
+            self.splits, notes = resolve_splits(self.cache, self.splits)
+            for note in notes:
+                log.warning(note)
         wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), None: STAGES}.get(stage, STAGES)
         if "train" in wanted:
             self._refuse_leaks()

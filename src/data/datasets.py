@@ -29,8 +29,8 @@ class Mirror:
     """One host of an archive, and what is published about the file it serves.
 
     Attributes:
-        url: the archive's address (a ``huggingface.co/datasets/<repo>/resolve/<revision>/<file>``
-            address is fetched with ``huggingface_hub``, any other with ``pooch``).
+        url: the archive's address (fetched by :mod:`src.data.download`; a HuggingFace address from the
+            endpoint that ``HF_ENDPOINT`` names).
         sha256, md5: its published checksum, verified after every download (``""``: none published;
             then its size, when published, and its structure are what is verified).
         size: its published size in bytes (None: none published).
@@ -72,6 +72,8 @@ class Source:
         as_provided: ``""`` for meshes sampled here (``num_samplings`` x ``num_points``); else the points
             are stored as provided, one sampling per shape, and this is the cache's ``pair_sampling``.
         one_process: its shapes are rows of large files: read in one process (each file read once).
+        axes: its axis convention, as measured (``""``: not measured); ``prepare --swap-yz`` maps the
+            y-up convention of the PointNet++ resampled archive and the meshes' z-up one into each other.
     """
 
     layout: str
@@ -80,6 +82,7 @@ class Source:
     mirrors: tuple[Mirror, ...] = ()
     as_provided: str = ""
     one_process: bool = False
+    axes: str = ""
 
     @property
     def meshes(self) -> bool:
@@ -170,13 +173,24 @@ _POINTNET2_RESAMPLED = (
                     "pointcept/datasets/modelnet.py:5); no checksum published"),
 )
 
+_NPY_COMMIT = "76fa94eff342546c58ba5c294ae22c4ef889f9c4"
+_PER_SHAPE_NPY = (
+    Mirror(f"https://github.com/prasadsawant5/PointNet/archive/{_NPY_COMMIT}.zip",
+           evidence="original host: GitHub's archive of prasadsawant5/PointNet at 76fa94e, whose ModelNet40/"
+                    "<category>/{train,test}/*.npy hold the official splits, 1,024 points a shape; GitHub publishes no "
+                    "checksum of its generated archives"),
+)
+#: The axis conventions measured on the real archives (a median 0.011 apart after (x, y, z) -> (x, z, y)).
+Z_UP = "z up: the ModelNet40 meshes' own axes"
+Y_UP = "y up: the meshes' y and z swapped"
+
 DATASETS: tuple[Dataset, ...] = (
     Dataset(
         "modelnet40", "ModelNet40: the Princeton meshes or PointNet's h5 points", num_samplings=40, num_points=2048,
         categories=MODELNET40_CATEGORIES,
         sources=(
             Source("princeton_off", "PrincetonOffReader", "Princeton meshes (ModelNet40/<category>/{train,test}/*.off)",
-                   mirrors=_PRINCETON),
+                   mirrors=_PRINCETON, axes=Z_UP),
             Source("pointnet_h5", "PointNetH5Reader",
                    "PointNet h5 (modelnet40_ply_hdf5_2048: ply_data_*.h5 + shape_names.txt)",
                    mirrors=_POINTNET_H5,
@@ -191,7 +205,17 @@ DATASETS: tuple[Dataset, ...] = (
                    "PointNet++ resampled (modelnet40_normal_resampled: modelnet40_shape_names.txt, "
                    "modelnet40_{train,test}.txt, <category>/<id>.txt)",
                    mirrors=_POINTNET2_RESAMPLED,
-                   as_provided="disjoint_subsets"),
+                   as_provided="disjoint_subsets", axes=Y_UP),
+        ),
+    ),
+    Dataset(
+        "modelnet40_npy", "ModelNet40 as one NumPy file a shape (e.g. 1,024 points, z up)",
+        categories=MODELNET40_CATEGORIES,
+        sources=(
+            Source("per_shape_npy", "NumpyShapeReader",
+                   "one .npy a shape (<category>/{train,test}/<category>_NNNN.npy: (N, 3) points or (N, 6) with "
+                   "normals; withheld_test_ids.txt names test files left out)",
+                   mirrors=_PER_SHAPE_NPY, as_provided="single_sampling", axes=Z_UP),
         ),
     ),
     Dataset(

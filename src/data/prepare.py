@@ -5,6 +5,8 @@
 * ``modelnet40_resampled --source PATH``: PointNet++'s ``modelnet40_normal_resampled`` (S=1 dense
   points + normals, ``disjoint_subsets``); a split whose listed files are absent is not built and
   reported (per category: count + first ids).
+* ``modelnet40_npy --source PATH``: one ``.npy`` a shape (S=1 as provided, ``single_sampling``: OS, or
+  the two disjoint halves of ``data.sampling=halves``); a withheld test split is reported by count.
 * ``stanford --source PATH``: a folder (or .zip) of .off/.ply scan meshes, sampled as meshes.
 * ``synthetic``: the embedded procedural default (also built on first use by :func:`ensure_cache`).
 
@@ -22,13 +24,17 @@ is rebuilt.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import fcntl
 import importlib
 import itertools
 import json
 import logging
 import os
+import signal
 import sys
+import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -88,17 +94,46 @@ def _sample_mesh(shape: MeshShape, index: int, params: dict) -> Sampled:
     the paper estimates normals after pre-processing (FGR, RPMNet), and storing them doubles the
     cache (12 GB for ModelNet40); RPMNet's own protocol uses them (``model.network.normals=given``)."""
     points, normals = sample_shape(shape, params["num_samplings"], params["num_points"], params["seed"], index)
-    return points, normals if params.get("normals") else None
+    return _in_axes(points, normals if params.get("normals") else None, params)
 
 
 def _as_provided(shape: PointShape, index: int, params: dict) -> Sampled:
-    return shape.points[None], None if shape.normals is None else shape.normals[None]
+    return _in_axes(shape.points[None], None if shape.normals is None else shape.normals[None], params)
+
+
+def _in_axes(points: np.ndarray, normals: np.ndarray | None, params: dict) -> Sampled:
+    """The arrays with y and z swapped when ``params["swap_yz"]`` (``--swap-yz``), else as given."""
+    if not params.get("swap_yz"):
+        return points, normals
+    swap = [0, 2, 1]
+    return points[..., swap], None if normals is None else normals[..., swap]
 
 
 _worker: tuple[Reader, Compute, dict] | None = None
+PR_SET_PDEATHSIG = 1
+"""prctl(2)'s option that signals a process when the thread that started it ends (linux/prctl.h)."""
 
 
-def _init_worker(reader: Reader, compute: Compute, params: dict) -> None:
+def _die_with_parent(parent: int) -> None:
+    """End this process as soon as ``parent`` (the process that started it) ends, however it ends (``kill -9``
+    included): Linux's parent-death signal, elsewhere a thread that watches the parent."""
+    prctl = getattr(ctypes.CDLL(None, use_errno=True), "prctl", None)
+    if prctl is None or prctl(PR_SET_PDEATHSIG, signal.SIGKILL) != 0:
+        threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True).start()
+    elif os.getppid() != parent:  # it ended before the signal was asked for
+        os._exit(1)
+
+
+def _exit_when_orphaned(parent: int) -> None:
+    while os.getppid() == parent:
+        time.sleep(1)
+    os._exit(1)
+
+
+def _init_worker(parent: int, reader: Reader, compute: Compute, params: dict) -> None:
+    """A pool worker's start: it dies with ``parent`` (no worker outlives an interrupted ``prepare``) and keeps what
+    :func:`_run_task` computes with."""
+    _die_with_parent(parent)
     global _worker
     _worker = (reader, compute, params)
 
@@ -111,15 +146,20 @@ def _run_task(task: tuple[int, object]) -> Sampled:
 
 @contextmanager
 def _shape_mapper(reader: Reader, compute: Compute, params: dict, workers: int) -> Iterator[Callable]:
-    """Yield ``map_tasks([(index, entry), ...]) -> results in order``, in a process pool when workers > 1."""
+    """Yield ``map_tasks([(index, entry), ...]) -> results in order``, in a process pool when workers > 1. The
+    pool's workers die with this process, whatever ends it, and are killed when the block ends by an exception
+    (Ctrl+C, a shape refused): nothing waits for the shapes they were computing."""
     if workers <= 1:
         yield lambda tasks: (compute(reader.load(entry), index, params) for index, entry in tasks)
         return
-    pool = ProcessPoolExecutor(
-        workers, mp_context=get_context("spawn"), initializer=_init_worker, initargs=(reader, compute, params)
-    )
+    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker,
+                               initargs=(os.getpid(), reader, compute, params))
     try:
         yield lambda tasks: pool.map(_run_task, tasks, chunksize=4)
+    except BaseException:
+        for process in list((getattr(pool, "_processes", None) or {}).values()):  # (no public way before 3.14)
+            process.kill()
+        raise
     finally:
         pool.shutdown(cancel_futures=True)
 
@@ -222,8 +262,14 @@ def _normals_flag(normals: bool) -> dict:
     return {"normals": True} if normals else {}
 
 
+def _axes_flag(swap_yz: bool) -> dict:
+    """The ``sampling`` entry of ``--swap-yz`` (absent when off, so caches built without it stay valid)."""
+    return {"swap_yz": True} if swap_yz else {}
+
+
 def _sampling_params(
     layout: str, num_samplings: int | None, num_points: int | None, seed: int, limit: int | None, normals: bool = False,
+    swap_yz: bool = False,
 ) -> dict:
     dataset, source = source_of(layout)
     if source.meshes:
@@ -231,12 +277,14 @@ def _sampling_params(
             "num_samplings": num_samplings or dataset.num_samplings, "num_points": num_points or dataset.num_points,
             "seed": seed,
             "method": METHOD, "normalization": NORMALIZATION, "limit": limit, **_normals_flag(normals),
+            **_axes_flag(swap_yz),
         }
     _reject_options(
         {"--num-samplings": num_samplings, "--num-points": num_points, "--normals": normals},
         f"the {layout} layout (its points are stored as provided: one sampling holding all of each shape's points)",
     )
-    return {"num_samplings": 1, "method": AS_PROVIDED, "normalization": AS_PROVIDED, "limit": limit}
+    return {"num_samplings": 1, "method": AS_PROVIDED, "normalization": AS_PROVIDED, "limit": limit,
+            **_axes_flag(swap_yz)}
 
 
 def modelnet_halves(categories: list[str]) -> dict[str, list[str]]:
@@ -276,13 +324,14 @@ def _common_layout(dataset: str, sources: list[_Source]) -> str:
 def prepare_modelnet(
     dataset: str, sources: Sequence[Path], cache_root: Path, *, num_samplings: int | None = None,
     num_points: int | None = None, seed: int = 0, workers: int = 1, force: bool = False, limit: int | None = None,
-    normals: bool = False,
+    normals: bool = False, swap_yz: bool = False,
 ) -> Cache:
     """Build (or reuse) ``<cache_root>/<dataset>`` from ModelNet40 archives (folders or .zip files) of
-    one layout; several are merged into one cache (:class:`~src.data.readers.MergedReader`)."""
+    one layout; several are merged into one cache (:class:`~src.data.readers.MergedReader`). ``swap_yz``
+    stores (x, z, y) for (x, y, z): the other axis convention (the layout's record names its own)."""
     opened = _open_sources(sources)
     layout = _common_layout(dataset, opened)
-    sampling = _sampling_params(layout, num_samplings, num_points, seed, limit, normals)
+    sampling = _sampling_params(layout, num_samplings, num_points, seed, limit, normals, swap_yz)
     out = cache_root / dataset
     expected = {
         "dataset": dataset, "source_layout": layout, "sampling": sampling,
@@ -428,7 +477,8 @@ def _recorded_build(path: Path) -> dict | None:
         manifest = json.loads((path / "manifest.json").read_text())
         source, sampling = manifest["source"], manifest["sampling"]
         sources = [Path(p) for p in source.get("paths") or [source["path"]]]  # format 1 recorded one "path"
-        build = {"sources": sources, "seed": sampling.get("seed", 0), "limit": sampling.get("limit")}
+        build = {"sources": sources, "seed": sampling.get("seed", 0), "limit": sampling.get("limit"),
+                 "swap_yz": bool(sampling.get("swap_yz"))}
         if sampling["method"] != AS_PROVIDED:
             build |= {"num_samplings": sampling["num_samplings"], "num_points": sampling["num_points"],
                       "normals": bool(sampling.get("normals"))}
@@ -444,14 +494,14 @@ def prepare(
     dataset: str, *, source: Path | Sequence[Path] | None = None, cache_root: Path | None = None,
     num_samplings: int | None = None, num_points: int | None = None, seed: int = 0, workers: int = 1,
     download: bool | str = False, url: str | None = None, force: bool = False, limit: int | None = None,
-    normals: bool = False,
+    normals: bool = False, swap_yz: bool = False,
 ) -> Cache:
     """What the command line does; see the module docstring. ``download``: True, or the layout to download."""
     cache_root = Path(cache_root or default_cache_root())
     record = get_dataset(dataset)
     if record.generated:
         _reject_options(
-            {"--source": source, "--download": download, "--url": url, "--limit": limit},
+            {"--source": source, "--download": download, "--url": url, "--limit": limit, "--swap-yz": swap_yz},
             f"{dataset} (it is generated procedurally)",
         )
         return build_synthetic_cache(
@@ -473,7 +523,7 @@ def prepare(
         raise DatasetError(f"{dataset} needs --source PATH (a {archives} folder or .zip) or --download")
     return prepare_modelnet(
         dataset, sources, cache_root, num_samplings=num_samplings, num_points=num_points,
-        seed=seed, workers=workers, force=force, limit=limit, normals=normals,
+        seed=seed, workers=workers, force=force, limit=limit, normals=normals, swap_yz=swap_yz,
     )
 
 
@@ -511,6 +561,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
     p.add_argument("--normals", action="store_true",
                    help="mesh samplings: keep the sampled faces' normals (RPMNet's protocol; doubles the cache)")
+    p.add_argument("--swap-yz", action="store_true",
+                   help="store (x, z, y) for each (x, y, z): from one axis convention to the other (" +
+                        "; ".join(f"{s.layout}: {s.axes}" for d in DATASETS for s in d.sources if s.axes) + ")")
     p.add_argument(
         "--limit", type=_positive_int, help="only the first N shapes of each category per split (smoke tests)"
     )
@@ -523,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
     return exit_code_of(lambda: prepare(
         args.dataset, source=args.source, cache_root=args.cache_root, num_samplings=args.num_samplings,
         num_points=args.num_points, seed=args.seed, workers=args.workers, download=args.download,
-        url=args.url, force=args.force, limit=args.limit, normals=args.normals,
+        url=args.url, force=args.force, limit=args.limit, normals=args.normals, swap_yz=args.swap_yz,
     ))
 
 

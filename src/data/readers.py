@@ -4,6 +4,7 @@
 * ``pointnet_h5``: PointNet's ``modelnet40_ply_hdf5_2048`` (``ply_data_{train,test}*.h5``).
 * ``pointnet2_resampled``: PointNet++'s ``modelnet40_normal_resampled`` (the full archive or any
   subset of its category folders).
+* ``per_shape_npy``: one ``.npy`` a shape, ``<category>/{train,test}/<category>_NNNN.npy``.
 * ``scan_meshes``: any folder of ``.off`` / ``.ply`` scans.
 
 A reader lists its shapes as :class:`ShapeEntry` per split (``entries``), reports the splits it
@@ -37,6 +38,8 @@ LAYOUTS: tuple[str, ...] = tuple(s.layout for s in read_sources())
 SPLITS: tuple[str, ...] = ("train", "test")
 MISSING_EXAMPLES = 10
 """How many missing shape ids a :class:`MissingSplit` keeps per category (the message shows the first 5)."""
+SHAPE_ID = re.compile(r"(.+)_\d+")
+"""A ModelNet40 shape id, ``<category>_<number>``."""
 ZIP_SIGNATURES: tuple[bytes, ...] = (b"PK\x03\x04", b"PK\x05\x06")
 """How a .zip file starts (a local file header, or the end record of an empty archive)."""
 
@@ -143,11 +146,23 @@ class Archive:
         self.file_set = frozenset(self.files)
 
     def _walk(self) -> list[str]:
-        return [
-            Path(folder, f).relative_to(self.path).as_posix()
-            for folder, _, files in os.walk(self.path)
-            for f in files
-        ]
+        """Every file under the folder (anything that is no regular file refused: :meth:`_refuse_irregular`)."""
+        names = [Path(folder, f).relative_to(self.path).as_posix()
+                 for folder, _, files in os.walk(self.path) for f in files]
+        for name in names:
+            self._refuse_irregular(name)
+        return names
+
+    def _refuse_irregular(self, name: str) -> None:
+        """DatasetError when ``name`` in the folder is there but no regular file (links followed): a FIFO, a socket or
+        a device, which reading could block on or never finish, a folder, or a link to nothing."""
+        path = self.path / name
+        if path.is_file() or not (path.exists() or path.is_symlink()):
+            return
+        kinds = (("a FIFO", path.is_fifo), ("a socket", path.is_socket), ("a device", path.is_char_device),
+                 ("a device", path.is_block_device), ("a folder", path.is_dir))
+        kind = next((kind for kind, test in kinds if test()), "a link to nothing")
+        raise DatasetError(f"source {self.path}: {name} is {kind}, not a regular file: remove it from the folder")
 
     def _zip(self) -> zipfile.ZipFile:
         if getattr(self, "_handle", None) is None:
@@ -158,10 +173,24 @@ class Archive:
         return self._handle
 
     def read(self, name: str) -> bytes:
+        if not self.is_zip:
+            self._refuse_irregular(name)
         try:
             return self._zip().read(name) if self.is_zip else (self.path / name).read_bytes()
         except (zipfile.BadZipFile, zlib.error, EOFError) as e:
             raise self._damaged(f"{name}: {e}") from e
+        except (RuntimeError, NotImplementedError) as e:  # zipfile: a password needed, a method it cannot decompress
+            if not self.is_zip:
+                raise
+            info = self._zip().getinfo(name)
+            if info.flag_bits & 0x1:
+                problem = "is encrypted: unpack the archive with its password and pass the folder, or zip it again without one"
+            else:
+                method = zipfile.compressor_names.get(info.compress_type, "unknown")
+                problem = (f"is compressed with method {info.compress_type} ({method}), which Python's zipfile cannot "
+                           "read: unpack the archive with a tool that can (7z x) and pass the folder, or zip it again "
+                           "with deflate")
+            raise DatasetError(f"{name} in {self.path} {problem}") from e
         except (KeyError, OSError) as e:
             raise DatasetError(f"cannot read {name} from {self.path}: {e}") from e
 
@@ -191,8 +220,14 @@ def _parent(name: str) -> str:
     return name.rpartition("/")[0]
 
 
-def _lines(data: bytes) -> list[str]:
-    return [s for line in data.decode("utf-8-sig").splitlines() if (s := line.strip())]
+def _lines(data: bytes, name: str) -> list[str]:
+    """The non-blank lines of a UTF-8 list (a byte-order mark ignored); DatasetError naming ``name`` if it is not UTF-8."""
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{name} is not UTF-8 text (byte 0x{data[e.start]:02x} at offset {e.start}): save it as "
+                           "UTF-8") from None
+    return [s for line in text.splitlines() if (s := line.strip())]
 
 
 class Reader:
@@ -306,16 +341,23 @@ class PrincetonOffReader(Reader):
 
     def __init__(self, archive: Archive):
         super().__init__(archive)
-        matches = [(m, f) for f in archive.files if (m := self.PATTERN.search(f))]
-        self.categories = _ordered({m[1] for m, _ in matches})
-        entries: dict[str, list[ShapeEntry]] = {s: [] for s in SPLITS}
-        for m, f in sorted(matches, key=lambda mf: (self.categories.index(mf[0][1]), mf[0][3])):
-            entries[m[2].lower()].append(ShapeEntry(m[3], m[1], m[2].lower(), f))
+        self.categories, entries, _ = _entries_by_folder(archive, self.PATTERN)
         self._set_splits(entries)
 
     def load(self, entry: ShapeEntry) -> MeshShape:
         vertices, faces = parse_off(self.archive.read(entry.member), entry.member)
         return MeshShape(entry.name, entry.category, entry.split, vertices, faces)
+
+
+def _entries_by_folder(archive: Archive, pattern: re.Pattern) -> tuple[list[str], dict[str, list[ShapeEntry]], set[str]]:
+    """The categories, per split the entries (category, then name order) and the roots (the folders holding the
+    category folders) of the files ``pattern`` matches as ``<category>/<split>/<name>.<suffix>``."""
+    matches = [(m, f) for f in archive.files if (m := pattern.search(f))]
+    categories = _ordered({m[1] for m, _ in matches})
+    entries: dict[str, list[ShapeEntry]] = {s: [] for s in SPLITS}
+    for m, f in sorted(matches, key=lambda mf: (categories.index(mf[0][1]), mf[0][3])):
+        entries[m[2].lower()].append(ShapeEntry(m[3], m[1], m[2].lower(), f))
+    return categories, entries, {_parent(_parent(_parent(f))) for _, f in matches}
 
 
 def _ordered(categories: set[str]) -> list[str]:
@@ -346,7 +388,7 @@ class PointNetH5Reader(Reader):
         names_file = _join(root, "shape_names.txt")
         if names_file not in archive.file_set:
             raise DatasetError(f"{archive.path}: {names_file} not found next to the ply_data_*.h5 files")
-        shape_names = _lines(archive.read(names_file))
+        shape_names = _lines(archive.read(names_file), names_file)
         self._cached: tuple[str, dict[str, np.ndarray]] | None = None
         entries: dict[str, list[ShapeEntry]] = {s: [] for s in SPLITS}
         for split, k, member in files:
@@ -448,7 +490,6 @@ class ResampledReader(Reader):
     """
 
     NAMES_FILE = "modelnet40_shape_names.txt"
-    ID = re.compile(r"(.+)_\d+")
 
     @classmethod
     def detects(cls, archive: Archive) -> bool:
@@ -459,7 +500,7 @@ class ResampledReader(Reader):
         names_file = min((f for f in archive.files if PurePosixPath(f).name == self.NAMES_FILE), key=len)
         root = _parent(names_file)
         self.root = root
-        named = _lines(archive.read(names_file))
+        named = _lines(archive.read(names_file), names_file)
         folders = {_parent(f).removeprefix(f"{root}/" if root else "") for f in archive.files if f.endswith(".txt")}
         unknown = sorted(f for f in folders - set(named) if f and f != root and "/" not in f)
         if unknown:
@@ -473,7 +514,8 @@ class ResampledReader(Reader):
             list_file = _join(root, f"modelnet40_{split}.txt")
             if list_file not in archive.file_set:
                 continue
-            listed = [(shape_id, self._category(shape_id, list_file)) for shape_id in _lines(archive.read(list_file))]
+            listed = [(shape_id, self._category(shape_id, list_file))
+                      for shape_id in _lines(archive.read(list_file), list_file)]
             strays = sorted({category for _, category in listed} - set(named))
             if strays:
                 raise DatasetError(f"{archive.path}: {list_file} lists shapes of categories that {names_file} does not "
@@ -483,7 +525,7 @@ class ResampledReader(Reader):
                 for shape_id, category in listed
                 if category in self.categories
             ]
-            gaps = self._gaps(entries[split])
+            gaps = _missing_files(entries[split], archive.file_set)
             if gaps:
                 self.missing[split] = MissingSplit.of_files(split, len(entries[split]), gaps, [self.where])
                 del entries[split]
@@ -492,20 +534,8 @@ class ResampledReader(Reader):
     def split_list(self, split: str) -> str:
         return f"{_join(self.root, f'modelnet40_{split}.txt')} of {self.where}"
 
-    def _gaps(self, entries: list[ShapeEntry]) -> dict[str, dict]:
-        """Per category with absent files: ``{"missing", "listed", "examples"}``."""
-        gaps: dict[str, dict] = {}
-        for entry in entries:
-            gap = gaps.setdefault(entry.category, {"missing": 0, "listed": 0, "examples": []})
-            gap["listed"] += 1
-            if entry.member not in self.archive.file_set:
-                gap["missing"] += 1
-                if len(gap["examples"]) < MISSING_EXAMPLES:
-                    gap["examples"].append(entry.name)
-        return {category: gap for category, gap in gaps.items() if gap["missing"]}
-
     def _category(self, shape_id: str, list_file: str) -> str:
-        match = self.ID.fullmatch(shape_id)
+        match = SHAPE_ID.fullmatch(shape_id)
         if match is None:
             raise DatasetError(f"{list_file}: shape id {shape_id!r} is not '<category>_<number>'")
         return match[1]
@@ -513,6 +543,99 @@ class ResampledReader(Reader):
     def load(self, entry: ShapeEntry) -> PointShape:
         points, normals = parse_resampled(self.archive.read(entry.member), entry.member)
         return PointShape(entry.name, entry.category, entry.split, points, normals)
+
+
+# --- one NumPy file a shape -----------------------------------------------------------------
+
+
+def parse_npy(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """An ``(N, 3)`` (points) or ``(N, 6)`` (points, normals) ``.npy`` array as float32 ``(points, normals)``.
+
+    Anything else (not a .npy file, pickled objects, another shape, a non-numeric or non-finite value)
+    raises :class:`DatasetError` naming the file.
+    """
+    try:
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise DatasetError(f"{name}: not a readable .npy array ({e}); replace the file or remove it") from None
+    if not isinstance(array, np.ndarray) or array.ndim != 2 or array.shape[1] not in (3, 6) or len(array) == 0:
+        raise DatasetError(f"{name}: holds an array of shape {getattr(array, 'shape', '?')}, expected (N, 3) points "
+                           "or (N, 6) points and normals")
+    if array.dtype.kind not in "fiu":
+        raise DatasetError(f"{name}: holds {array.dtype} values, expected numbers")
+    values = array.astype(np.float32)
+    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+    if bad.size:
+        raise DatasetError(f"{name}: {bad.size} rows hold non-finite values (first: row {bad[0]}: {array[bad[0]]}); "
+                           "replace the file")
+    return values[:, :3], values[:, 3:] if values.shape[1] == 6 else None
+
+
+class NumpyShapeReader(Reader):
+    """``<...>/<category>/{train,test}/<category>_NNNN.npy``, one shape a file; yields :class:`PointShape`.
+
+    ``withheld_test_ids.txt`` beside the category folders, when present, lists test ids left out of
+    the archive: a split whose listed ids lack a file is not built and is reported (per category: count
+    and first ids).
+    """
+
+    PATTERN = re.compile(r"(?:^|/)([^/]+)/(train|test)/([^/]+)\.npy$", re.IGNORECASE)
+    WITHHELD = "withheld_test_ids.txt"
+
+    @classmethod
+    def detects(cls, archive: Archive) -> bool:
+        return any(cls.PATTERN.search(f) for f in archive.files)
+
+    def __init__(self, archive: Archive):
+        super().__init__(archive)
+        self.categories, entries, roots = _entries_by_folder(archive, self.PATTERN)
+        if len(roots) > 1:
+            raise DatasetError(f"{archive.path}: .npy shapes under several roots ({', '.join(sorted(roots))}): "
+                               "give one dataset folder")
+        self.root = roots.pop()
+        withheld = self._withheld()
+        if withheld:
+            present = {e.name for e in entries["test"]}
+            listed = entries["test"] + [
+                ShapeEntry(name, category, "test", _join(self.root, category, "test", f"{name}.npy"))
+                for name, category in withheld if name not in present and category in self.categories
+            ]
+            gaps = _missing_files(listed, archive.file_set)
+            if gaps:
+                self.missing["test"] = MissingSplit.of_files("test", len(listed), gaps, [self.where])
+                del entries["test"]
+        self._set_splits(entries)
+
+    def _withheld(self) -> list[tuple[str, str]]:
+        """``(id, category)`` of the ids ``withheld_test_ids.txt`` lists (none without the file)."""
+        list_file = _join(self.root, self.WITHHELD)
+        if list_file not in self.archive.file_set:
+            return []
+        ids = _lines(self.archive.read(list_file), list_file)
+        malformed = [i for i in ids if not SHAPE_ID.fullmatch(i)]
+        if malformed:
+            raise DatasetError(f"{list_file}: shape id {malformed[0]!r} is not '<category>_<number>'")
+        return [(i, SHAPE_ID.fullmatch(i)[1]) for i in ids]
+
+    def split_list(self, split: str) -> str:
+        return f"the {split} folders of {self.where}"
+
+    def load(self, entry: ShapeEntry) -> PointShape:
+        points, normals = parse_npy(self.archive.read(entry.member), entry.member)
+        return PointShape(entry.name, entry.category, entry.split, points, normals)
+
+
+def _missing_files(entries: list[ShapeEntry], files: frozenset[str]) -> dict[str, dict]:
+    """Per category of ``entries`` with absent members: ``{"missing", "listed", "examples"}``."""
+    gaps: dict[str, dict] = {}
+    for entry in entries:
+        gap = gaps.setdefault(entry.category, {"missing": 0, "listed": 0, "examples": []})
+        gap["listed"] += 1
+        if entry.member not in files:
+            gap["missing"] += 1
+            if len(gap["examples"]) < MISSING_EXAMPLES:
+                gap["examples"].append(entry.name)
+    return {category: gap for category, gap in gaps.items() if gap["missing"]}
 
 
 # --- real scans (Stanford 3D Scanning Repository style) --------------------------------------

@@ -34,7 +34,9 @@ from src.geometry.numpy_rigid import apply_transform, euler_transform, inverse_t
 Sample = dict[str, Any]
 Transform = Callable[[Sample, np.random.Generator], Sample]
 
-SAMPLINGS = ("os", "ts")
+SAMPLINGS = ("os", "ts", "halves")
+"""``os``: one sampling for both clouds; ``ts``: two samplings (the paper's); ``halves``: the two disjoint
+random halves of the OS cloud (what a dataset of one sampling a shape offers instead of TS; never the paper's TS)."""
 PARTIAL_MANNERS = ("prnet", "rpmnet", "none")
 PAIR_SAMPLINGS = ("independent_samplings", "single_sampling", "disjoint_subsets")
 PERTURBATIONS = ("euler", "twist")
@@ -94,6 +96,7 @@ class PickPair:
     ``ts`` (twice-sampled): two different samplings of the CAD model (``independent_samplings``),
     or two disjoint random subsets of its dense points (``disjoint_subsets``, the closest offline
     equivalent for the PointNet++ resampled layout). ``os`` (once-sampled): one sampling for both.
+    ``halves``: the OS cloud's points split into two disjoint random halves, one a cloud.
     The optional ``shape_normals`` are picked with the same rows and made unit length; ``points_raw`` is
     a copy of the reference's points.
     """
@@ -109,8 +112,9 @@ class PickPair:
             raise DatasetError(f"unknown pair_sampling {self.pair_sampling!r} in the cache manifest")
         if self.sampling == "ts" and self.pair_sampling == "single_sampling":
             raise DatasetError(
-                "this cache holds one sampling per shape (PointNet h5 files), so twice-sampled (TS) pairs "
-                "are impossible: prepare the cache from the ModelNet40 mesh archive, or use data.sampling=os"
+                "this cache holds one sampling per shape, so twice-sampled (TS) pairs are impossible: use sampling=os, "
+                "or sampling=halves (two disjoint halves of a shape's points, not the paper's TS), or prepare a cache "
+                "from the ModelNet40 meshes or the PointNet++ resampled archive"
             )
 
     def __call__(self, sample: Sample, rng: np.random.Generator) -> Sample:
@@ -126,6 +130,12 @@ class PickPair:
 
     def _rows(self, shape: np.ndarray, rng: np.random.Generator) -> list[tuple[int, np.ndarray | slice]]:
         """(sampling index, rows) of the source, then of the reference."""
+        if self.sampling == "halves":
+            (sampling, rows), _ = PickPair("os", self.pair_sampling, self.num_points)._rows(shape, rng)
+            rows = np.arange(shape.shape[1])[rows]
+            perm = rng.permutation(len(rows))
+            half = len(rows) // 2
+            return [(sampling, np.sort(rows[perm[:half]])), (sampling, np.sort(rows[perm[half:2 * half]]))]
         if self.pair_sampling == "disjoint_subsets":
             dense = shape.shape[1]
             needed = self.num_points * (2 if self.sampling == "ts" else 1)

@@ -59,7 +59,7 @@ def _tiny(cache: str, tmp_path: Path, *overrides: str):
     ("data.num_workers=-1", "data.num_workers=-1 is invalid: it must be an integer >= 0"),
     ("data.pin_memory=yes", "data.pin_memory='yes' is invalid: it must be true or false"),
     ("partial=yy", "partial='yy' is invalid: it must be one of prnet, rpmnet, none"),  # a 20-line traceback
-    ("sampling=xs", "sampling='xs' is invalid: it must be one of os, ts"),
+    ("sampling=xs", "sampling='xs' is invalid: it must be one of os, ts, halves"),
     ("model_scale=0", "model_scale=0 is invalid: it must be a number > 0"),
     ("model.lr=-1e-3", "model.lr=-0.001 is invalid: it must be a number > 0"),
     ("model.network.num_iters=0", "model.network.num_iters=0 is invalid: it must be an integer >= 1"),
@@ -116,14 +116,14 @@ def test_intervals_budgets_and_unknown_object_options_are_refused(override, mess
      "error: an override does not parse (no viable alternative at input '[-100,'); quote values with brackets, "
      "commas or spaces, e.g. 'data.splits.test.slice=[-100, null]'"),
     ("src.eval", ["data=modelnet41"], "error: data=modelnet41: no such config in group data; choose one of: base, "
-                                      "modelnet40, modelnet40_resampled, scan_pairs, stanford, synthetic"),
+                                      "modelnet40, modelnet40_npy, modelnet40_resampled, scan_pairs, stanford, synthetic"),
     ("src.train", ["modle=dcp"], "error: modle is not a config key or group: did you mean model, model_scale? add a new "
                                  "key with +modle=VALUE"),
     ("src.train", ["trainer.max_step=5"], "error: trainer.max_step is not a key of trainer: did you mean "
                                           "trainer.max_steps, trainer.max_epochs? add a new key with +trainer.max_step=VALUE"),
     ("benchmarks.grid", ["+benchmark=nosuch"], "error: benchmark=nosuch: no such config in group benchmark; choose one "
                                                "of: default, demo, modelnet_real_airplane, modelnet_real_bathtub, "
-                                               "published_weights, real_airplane, real_categories, scan_pairs, stanford"),
+                                               "published_weights, real_airplane, real_categories, scan_pairs, stanford, table1_npy"),
 ])
 def test_hydra_override_errors_are_one_line_exit_2(module, argv, message, monkeypatch, capsys):
     main = importlib.import_module(COMMAND_MODULES.get(module, module)).main
@@ -319,7 +319,8 @@ def test_train_refuses_weights(tmp_path, cache):
 NO_LOGGING = ["hydra/job_logging=none", "hydra/hydra_logging=none"]
 TOP_LEVEL = ("the top-level keys are callbacks, ckpt_path, data, force_precision, hydra, init_weights, logger, model, model_scale, on_failure, "
              "output_dir, pairs_per_scan, partial, real_train_categories, sampling, seed, task_name, test_after_fit, "
-             "test_category, test_size, train_category, trainer, val_repeat, val_size, variant, weights, weights_importer")
+             "test_category, test_size, train_category, trainer, val_repeat, val_size, variant, weights, weights_importer, "
+             "withheld")
 
 
 @pytest.mark.parametrize("override, hint", [  # were written into config_resolved.yaml and read by nothing

@@ -54,7 +54,7 @@ def _cost(seconds_at_full_width: float):
 
 def test_the_widest_width_that_buys_the_minimum_steps_is_chosen():
     probe, calls = _cost(30.0)  # 1.0 -> 109 steps, 0.5 -> 436, 0.25 -> 1745 in an hour
-    plan = plan_method("dcp", 1.0, probe)
+    plan = plan_method("dcp", 1.0, probe=probe)
     assert [w for _, w, _ in calls] == [1.0, 0.5, 0.25] and plan["width"] == 0.25
     (stage,) = plan["stages"]
     assert stage["batch"] == compose_recipe("dcp").data.batch_size
@@ -63,28 +63,29 @@ def test_the_widest_width_that_buys_the_minimum_steps_is_chosen():
 
 def test_the_authors_width_when_the_budget_buys_enough_steps():
     probe, calls = _cost(1.0)
-    assert plan_method("fmr", 1.0, probe)["width"] == 1.0 and len(calls) == 1
+    assert plan_method("fmr", 1.0, probe=probe)["width"] == 1.0 and len(calls) == 1
 
 
 def test_a_step_that_never_fits_is_refused():
     with pytest.raises(cpu_budget.ConfigError, match="out of memory"):
-        plan_method("prnet", 1.0, lambda model, width, batch: float("inf"))
+        plan_method("prnet", 1.0, probe=lambda model, width, batch: float("inf"))
 
 
 def test_pointnetlks_classifier_stage_takes_its_share_of_the_same_budget():
     probe, _ = _cost(2.0)
-    plan = plan_method("pointnetlk", 1.0, probe)
+    plan = plan_method("pointnetlk", 1.0, probe=probe)
     classifier, lk = (Stage(**s) for s in plan["stages"])
     assert (classifier.model, lk.model) == ("pointnet_classifier", "pointnetlk")
     assert classifier.budget_cpu_h + lk.budget_cpu_h == pytest.approx(1.0)
     epochs = compose_recipe("pointnet_classifier").trainer.max_epochs, compose_recipe("pointnetlk").trainer.max_epochs
     assert classifier.budget_cpu_h / lk.budget_cpu_h == pytest.approx(epochs[0] / epochs[1])  # same step cost here
-    assert "data=synthetic" in classifier.overrides
+    assert "data=synthetic" in stage_command(classifier, Path("run"), [])  # the real airplanes have one category
+    assert "data=modelnet40_npy" in stage_command(classifier, Path("run"), [], "unseen_categories_npy")
 
 
 def test_runs_resume_and_chain_the_classifier_features(tmp_path, monkeypatch):
     probe, _ = _cost(2.0)
-    monkeypatch.setattr(cpu_budget, "plan_method", lambda method, budget_h: plan_method(method, budget_h, probe))
+    monkeypatch.setattr(cpu_budget, "plan_method", lambda method, budget_h, *protocol: plan_method(method, budget_h, *protocol, probe=probe))
     commands = []
 
     def train(run_dir: Path, command: list[str]) -> int:
@@ -128,7 +129,7 @@ def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp
     probe, _ = _cost(2.0)
     for method in ("dcp", "pointnetlk"):
         (tmp_path / method).mkdir()
-        (tmp_path / method / "plan.json").write_text(json.dumps(plan_method(method, 1.0, probe)))
+        (tmp_path / method / "plan.json").write_text(json.dumps(plan_method(method, 1.0, probe=probe)))
     val = lambda step, hours, err: {"step": step, "time/cpu_hours": hours, "val/Error(R)": err, "val/Error(t)": err / 100}  # noqa: E731
     _fake_stage(tmp_path / "dcp" / "dcp", [val(9, 0.5, 30.0), val(19, 1.0, 20.0), {"step": 20, "time/cpu_hours": 1.01}],
                 {"Error(R)": 21.0, "Error(t)": 0.2})
@@ -164,7 +165,7 @@ def test_the_probe_times_a_step_in_a_child_and_reports_one_that_does_not_fit_as_
 
 
 def test_run_archives_each_method_when_it_returns(tmp_path, monkeypatch):
-    def fake_run(method, root, budget_h):
+    def fake_run(method, root, budget_h, planner=None):
         (root / method).mkdir(parents=True)
         (root / method / "plan.json").write_text(json.dumps({"stages": [{"name": method}]}))
         return f"{method}: done"

@@ -51,22 +51,44 @@ METHODS = ("omnet", "dcp", "prnet", "rpmnet", "idam", "pointnetlk", "pointnetlk_
 #: A recipe other than ``conf/recipe/<model>.yaml``: OMNet's official code, not the paper's text (the guide's rule).
 RECIPE_OF = {"omnet": "omnet_official"}
 #: PointNetLK's first stage (its authors' ``ex1_train.sh``): a classifier whose features PointNetLK starts from.
-#: On the synthetic default's categories: the real data has one training category (nothing to classify), and
-#: bathtubs are the unseen-category test set.
-CLASSIFIER = {"model": "pointnet_classifier", "data": ["+exp=unseen_shapes", "data=synthetic"]}
+CLASSIFIER = "pointnet_classifier"
 MIN_STEPS = 500
 WIDTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 VALIDATIONS = 20          # validations per run (200 pairs each), the points of the learning curve
 PROBE_POINTS = 768        # the PRNet manner's crop
 #: Step-cost allowance for what the probe does not time (pair generation, logging, Lightning's loop).
 OVERHEAD = 1.1
-PROTOCOL = [
-    "+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noise_sigma=0.0",
+#: How every run trains, whatever the protocol.
+TRAINING = [
     "trainer.accelerator=cpu", "data.num_workers=0", "data.persistent_workers=false", "data.pin_memory=false",
     "data.eval_batch_size=50", "trainer.check_val_every_n_epoch=null", "trainer.max_epochs=-1",
     "trainer.log_every_n_steps=20", "trainer.enable_progress_bar=false", "test_after_fit=true",
     "callbacks.periodic_checkpoint.train_time_interval.minutes=5",
 ]
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The data a budget trains on: the experiment's overrides, and the classifier stage's (PointNetLK)."""
+
+    experiment: list[str]
+    classifier: list[str]
+
+
+PROTOCOLS = {
+    # TS, PRNet manner, clean, real airplanes; the classifier on the synthetic default's categories (the real data
+    # has one training category, nothing to classify; bathtubs are the unseen-category test set).
+    "real_airplane": Protocol(["+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noise_sigma=0.0"],
+                              ["+exp=unseen_shapes", "data=synthetic"]),
+    # Table 1 on the 40 real categories, 1,024 points a shape: OS, PRNet manner, the first half's categories
+    # (conf/exp/unseen_categories.yaml: validation on its carve-out, test on the second half); the classifier on
+    # the same 14 training categories.
+    "unseen_categories_npy": Protocol(["+exp=unseen_categories", "data=modelnet40_npy", "partial=prnet"],
+                                      ["+exp=unseen_categories", "data=modelnet40_npy"]),
+    # Table 1 (c): the same with the paper's noise, tested on the unseen-shapes carve-out.
+    "gaussian_noise_npy": Protocol(["+exp=gaussian_noise", "data=modelnet40_npy", "partial=prnet"],
+                                   ["+exp=gaussian_noise", "data=modelnet40_npy"]),
+}
 
 
 def compose_recipe(model: str, recipe: str | None = None) -> Any:
@@ -133,7 +155,7 @@ def time_step(model: str, width: float, batch: int, steps: int = 2) -> float:
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-4)
 
     def loss() -> torch.Tensor:
-        if model == CLASSIFIER["model"]:
+        if model == CLASSIFIER:
             return F.cross_entropy(network(data["points_ref"]), torch.arange(batch) % 2)
         return network.loss(network(data["points_src"], data["points_ref"], data["transform_gt"]), data["transform_gt"])["loss"]
 
@@ -171,7 +193,7 @@ def _steps_for(seconds: float, step_s: float) -> int:
     return int(seconds / (step_s * OVERHEAD))
 
 
-def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[str, Any]:
+def plan_method(method: str, budget_h: float, protocol: str = "real_airplane", probe=probe_step_seconds) -> dict[str, Any]:
     """Width, batch, steps and schedule of ``method`` under ``budget_h`` CPU hours (see the module docstring)."""
     cfg = compose_recipe(method)
     batch = int(cfg.data.batch_size)
@@ -187,17 +209,17 @@ def plan_method(method: str, budget_h: float, probe=probe_step_seconds) -> dict[
     stages = []
     budget_s = budget_h * 3600
     if method == "pointnetlk":  # the classifier stage's share: the authors' epochs times the probed step costs
-        cls = compose_recipe(CLASSIFIER["model"])
+        cls = compose_recipe(CLASSIFIER)
         cls_batch = int(cls.data.batch_size)
-        cls_step = probe(CLASSIFIER["model"], width, cls_batch)
+        cls_step = probe(CLASSIFIER, width, cls_batch)
         cls_cost, lk_cost = cls.trainer.max_epochs * cls_step, cfg.trainer.max_epochs * step_s
         cls_s = budget_s * cls_cost / (cls_cost + lk_cost)
-        stages.append(Stage("classifier", CLASSIFIER["model"], width, cls_batch, cls_step, cls_s / 3600,
-                            _steps_for(cls_s, cls_step), [*CLASSIFIER["data"], *budget_schedule(cls)]))
+        stages.append(Stage("classifier", CLASSIFIER, width, cls_batch, cls_step, cls_s / 3600,
+                            _steps_for(cls_s, cls_step), budget_schedule(cls)))
         budget_s -= cls_s
     stages.append(Stage(method, method, width, batch, step_s, budget_s / 3600, _steps_for(budget_s, step_s),
                         ([f"recipe={RECIPE_OF[method]}"] if method in RECIPE_OF else []) + budget_schedule(cfg)))
-    return {"method": method, "budget_cpu_h": budget_h, "width": width, "probe_step_cpu_s": probes,
+    return {"method": method, "protocol": protocol, "budget_cpu_h": budget_h, "width": width, "probe_step_cpu_s": probes,
             "stages": [vars(s) for s in stages], "code": code_version()}
 
 
@@ -206,7 +228,7 @@ BEYOND = "_beyond"
 
 
 def plan_beyond(method: str, recipe: str, budget_h: float, init_weights: str | None = None,
-                probe=probe_step_seconds) -> dict[str, Any]:
+                protocol: str = "real_airplane", probe=probe_step_seconds) -> dict[str, Any]:
     """A run of ``method`` beyond the equal budget: ``recipe`` as it is (its width, batch and a schedule that spans
     the run), the steps ``budget_h`` buys at the probed step cost, optionally starting from ``init_weights``."""
     cfg = compose_recipe(method, recipe)
@@ -216,14 +238,14 @@ def plan_beyond(method: str, recipe: str, budget_h: float, init_weights: str | N
         raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} (out of memory?)")
     overrides = [f"recipe={recipe}"] + ([f"init_weights={init_weights}"] if init_weights else [])
     stage = Stage(method, method, width, batch, step_s, budget_h, _steps_for(budget_h * 3600, step_s), overrides)
-    return {"method": method, "beyond": recipe, "budget_cpu_h": budget_h, "width": width,
+    return {"method": method, "protocol": protocol, "beyond": recipe, "budget_cpu_h": budget_h, "width": width,
             "probe_step_cpu_s": {str(width): step_s}, "stages": [vars(stage)], "code": code_version()}
 
 
-def stage_command(stage: Stage, run_dir: Path, extra: list[str]) -> list[str]:
-    """The ``src.train`` command line of one stage (resuming from its ``last.ckpt`` when there is one)."""
-    protocol = [o for o in PROTOCOL if not (stage.model == CLASSIFIER["model"] and o.startswith(("+exp=", "sampling=", "partial=")))]
-    command = [sys.executable, "-m", "src.train", *protocol, f"model={stage.model}", f"model_scale={stage.width}",
+def stage_command(stage: Stage, run_dir: Path, extra: list[str], protocol: str = "real_airplane") -> list[str]:
+    """The ``src.train`` command line of one stage of ``protocol`` (resuming from its ``last.ckpt`` when there is one)."""
+    data = PROTOCOLS[protocol].classifier if stage.model == CLASSIFIER else PROTOCOLS[protocol].experiment
+    command = [sys.executable, "-m", "src.train", *data, *TRAINING, f"model={stage.model}", f"model_scale={stage.width}",
                f"data.batch_size={stage.batch}", f"trainer.max_steps={stage.max_steps}",
                f"trainer.val_check_interval={stage.val_every}", *stage.overrides, *extra,
                f"callbacks.clock.budget_cpu_hours={stage.budget_cpu_h:.4f}",
@@ -254,7 +276,7 @@ def run_method(method: str, root: Path, budget_h: float, folder: str | None = No
         run_dir.mkdir(exist_ok=True)
         done = run_dir / "done.json"
         if not done.is_file():
-            command = stage_command(stage, run_dir, extra)
+            command = stage_command(stage, run_dir, extra, plan.get("protocol", "real_airplane"))
             (run_dir / "command.txt").write_text(" ".join(command[1:]) + "\n")
             code = train_logged(run_dir, command)
             if code != 0:
@@ -311,6 +333,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.studies.cpu_budget.budget", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     run = add_run_parser(sub, "methods", METHODS, ("--budget-h", 1.0, "CPU hours"), parallel=2)
+    run.add_argument("--protocol", choices=sorted(PROTOCOLS), default="real_airplane", help="the data it trains on")
     run.add_argument("--archive", type=Path, default=None,
                      help="archive each method's record here when its run returns (e.g. benchmarks/studies/cpu_budget/results/runs)")
     beyond = sub.add_parser("beyond", help="train one method beyond the budget with a recipe (resumable)")
@@ -320,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     beyond.add_argument("--budget-h", type=float, required=True, help="CPU hours of this run, one thread")
     beyond.add_argument("--init-weights", default=None, help="start from this checkpoint's weights (src.train init_weights)")
     beyond.add_argument("--archive", type=Path, default=None, help="archive the run's record here when it returns")
+    beyond.add_argument("--protocol", choices=sorted(PROTOCOLS), default="real_airplane", help="the data it trains on")
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/studies/cpu_budget/results/runs"))
@@ -331,14 +355,15 @@ def main(argv: list[str] | None = None) -> int:
             return
         if args.command == "beyond":
             folder = args.method + BEYOND
-            planner = lambda: plan_beyond(args.method, args.recipe, args.budget_h, args.init_weights)
+            planner = lambda: plan_beyond(args.method, args.recipe, args.budget_h, args.init_weights, args.protocol)
             run_each(args.method, METHODS, "methods", ("--budget-h", args.budget_h), 1,
                      lambda m: run_method(m, args.root, args.budget_h, folder, planner))
             if args.archive is not None:
                 archive_runs(args.root, args.archive, [folder])
             return
         def run_one(method: str) -> str:
-            status = run_method(method, args.root, args.budget_h)
+            status = run_method(method, args.root, args.budget_h,
+                                planner=lambda: plan_method(method, args.budget_h, args.protocol))
             if args.archive is not None:
                 archive_runs(args.root, args.archive, [method])
             return status

@@ -239,6 +239,28 @@ def test_scan_pairs_table_and_plot_bin_a_grid_by_overlap(tmp_path, capsys):
     assert "ran on other pairs than scan_pairs/ts/prnet" in capsys.readouterr().err
 
 
+def test_the_categories_plot_gives_each_methods_error_per_shape_category(tmp_path, capsys):
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        cfg = compose("benchmark_grid", overrides=[
+            "benchmark.methods=[identity,icp]", "benchmark.experiments=[unseen_categories]", "benchmark.samplings=[ts]",
+            "benchmark.partials=[prnet]", "benchmark.max_pairs=12", "workers=0", "progress=false", "paper=false",
+            f"output_dir={tmp_path / 'grid'}"])
+    pairs = run_grid(cfg).pairs
+    assert plots_main(["categories", str(tmp_path / "grid"), "--sampling", "ts", "--out", str(tmp_path / "out")]) == 0
+    _, table = markdown_table(capsys.readouterr().out, "Error(R), mean (degrees), per category")
+    assert table.columns.tolist() == ["Category", "pairs", "Identity (no registration)", "ICP"]
+    from src.pair_sets import build_test_set
+
+    test_set = build_test_set("unseen_categories", "ts", "prnet", "synthetic", [])
+    labels = test_set.dataset.labels[test_set.dataset.shape_indices[:12]]
+    icp = pairs[pairs["method"] == "icp"].sort_values("pair")["Error(R)"].to_numpy()
+    for category, row in table.set_index("Category").drop("all").iterrows():
+        own = [test_set.categories[label] == category for label in labels]
+        assert int(row["pairs"]) == sum(own) and float(row["ICP"]) == pytest.approx(icp[own].mean(), abs=0.006)
+    assert int(table.set_index("Category").loc["all", "pairs"]) == 12
+    assert (tmp_path / "out" / "unseen_categories_ts_prnet_by_category.png").stat().st_size > 10_000
+
+
 def test_real_data_table_in_the_papers_order_with_its_caption(paper_dir):
     frame = _frame(["OMNet"], experiments=("real_unseen_category", "real_airplane_noisy", "real_airplane"),
                    dataset="modelnet40_resampled", noise_sigma=0.0)

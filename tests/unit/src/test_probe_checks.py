@@ -177,7 +177,7 @@ def test_ctrl_c_in_a_command_is_one_line_and_status_130(capsys):
 
 
 def test_a_byte_order_mark_is_not_part_of_the_first_name(tmp_path):
-    assert _lines("\ufeffairplane_0001\nchair_0001\n".encode("utf-8")) == ["airplane_0001", "chair_0001"]
+    assert _lines("\ufeffairplane_0001\nchair_0001\n".encode("utf-8"), "names.txt") == ["airplane_0001", "chair_0001"]
     path = tmp_path / "cloud.xyz"
     path.write_text("\ufeff0 0 0\n1 0 0\n0 1 0\n", encoding="utf-8")
     assert read_points(path).shape == (3, 3)
