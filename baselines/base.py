@@ -6,7 +6,9 @@ cloud (N, 3) and a reference cloud (M, 3): :meth:`~Registrator.register` returns
 :meth:`~Registrator.register_result` a :class:`~baselines.result.RegistrationResult`. Classical methods
 implement :meth:`~Registrator._register`; learned adapters (:mod:`baselines.learned.adapter`) override
 :meth:`~Registrator._register_batch`. Inputs are checked by :func:`~src.geometry.clouds.check_cloud` and
-conditioned by :mod:`baselines.conditioning`; methods are looked up by name in :mod:`baselines.registry`.
+conditioned by :mod:`baselines.conditioning` (each point once, in the method's frame, within its point budget),
+then refused where they cannot determine the method's rotation (:meth:`~Registrator._refuse_undetermined`); methods
+are looked up by name in :mod:`baselines.registry`.
 More: ``docs/methods/base.md``.
 """
 
@@ -20,12 +22,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from baselines.conditioning import POINT_BUDGET, condition
+from baselines.conditioning import POINT_BUDGET, Similarity, condition, working_frame
 from baselines.result import FIT_THRESHOLD, RegistrationResult, check_threshold, one_line, transform_problem
 from src.utils.errors import ConfigError, PointCloudError, RegistrationError
 from src.geometry.clouds import check_batch, check_cloud
 
-__all__ = ["Registrator", "RegistratorConfig"]
+__all__ = ["Registrator", "RegistratorConfig", "is_planar", "refuse_planar", "require_found", "require_points"]
+
+#: Relative size under which a centred cloud's third singular value counts as zero (all points on one plane): 16
+#: float32 epsilons, so that a plane stored in float32 is a plane.
+PLANAR_RTOL = 16 * float(np.finfo(np.float32).eps)
+#: Fewest correspondences (inliers) a solver's answer must rest on to determine a rotation.
+MIN_CORRESPONDENCES = 3
 
 
 @dataclass
@@ -59,6 +67,40 @@ def _within(cfg: RegistratorConfig, *names: str, interval: str) -> None:
         if not (above and below):
             raise ConfigError(f"{type(cfg).__qualname__}.{name} must be in {interval}, got {value!r}")
 
+
+def require_points(method: str, src: np.ndarray, ref: np.ndarray, need: int, why: str) -> None:
+    """PointCloudError unless each cloud of a conditioned pair (its points each once) has ``need`` points; ``why``
+    completes "each cloud needs at least <need> points ...", e.g. ``"for this network"``."""
+    fewest = min(len(src), len(ref))
+    if fewest < need:
+        raise PointCloudError(f"{method}: each cloud needs at least {need} points {why}, got {fewest}")
+
+
+def require_found(method: str, solver: str, kept: int, at_start: bool = True) -> None:
+    """RegistrationError when ``solver`` found nothing: its answer rests on fewer than :data:`MIN_CORRESPONDENCES`
+    correspondences (the libraries then return the identity, or a pose nothing determines). A local solver found
+    nothing only if its answer is still its start (``at_start``): one that moved, then lost its correspondences,
+    returns the pose it diverged to, its estimate."""
+    if at_start and kept < MIN_CORRESPONDENCES:
+        raise RegistrationError(f"{method}: found no transform: {solver} ended with {kept} correspondences, a rotation "
+                                f"needs {MIN_CORRESPONDENCES}: the clouds share too little for it; try another method")
+
+
+def is_planar(points: np.ndarray) -> bool:
+    """Whether all ``points`` lie on one plane, to :data:`PLANAR_RTOL` of the cloud's extent."""
+    singular = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(singular[2] <= PLANAR_RTOL * singular[0])
+
+
+def refuse_planar(method: str, why: str, **clouds: np.ndarray) -> None:
+    """PointCloudError if one of the named ``clouds`` has all its points on one plane, for a method that cannot
+    resolve such a cloud (``why``; ``""``: it can, nothing is refused)."""
+    for name, cloud in clouds.items():
+        if why and is_planar(cloud):
+            raise PointCloudError(f"{method}: the {name} cloud's {len(cloud)} points all lie on one plane, where "
+                                  f"{why}; register it with a method that resolves planar clouds (icp, gicp, cpd)")
+
+
 class Registrator(ABC):
     """A rigid registration method: ``register(src, ref) -> T`` with ``ref ≈ R src + t``.
 
@@ -73,17 +115,18 @@ class Registrator(ABC):
         needs_normals: ``True`` if the method uses surface normals. Classical methods here
             estimate them themselves from the clouds as received (see each method).
         config_cls: the dataclass holding the method's settings.
-        normalise_frame: register pairs outside the working frame in it (:mod:`baselines.conditioning`).
         point_budget: most points per cloud handed to :meth:`_register` (None: no limit);
             set it on an instance to change it for that instance.
+        planar_blind: why the method cannot determine the rotation of a cloud whose points all lie on one plane
+            (``""``: it can); such a cloud is then refused.
     """
 
     name: ClassVar[str] = "registrator"
     needs_training: ClassVar[bool] = False
     needs_normals: ClassVar[bool] = False
     config_cls: ClassVar[type[RegistratorConfig]] = RegistratorConfig
-    normalise_frame: ClassVar[bool] = True
     point_budget: ClassVar[int | None] = POINT_BUDGET
+    planar_blind: ClassVar[str] = ""
 
     def __init__(self, config: RegistratorConfig | None = None, **overrides: Any) -> None:
         if config is None:
@@ -104,11 +147,12 @@ class Registrator(ABC):
         """Estimate ``T`` (4, 4) with ``ref ≈ T[:3, :3] @ src + T[:3, 3]``.
 
         ``src`` is (N, 3) and ``ref`` (M, 3); N and M may differ. Raises PointCloudError for
-        bad inputs, and RegistrationError where the method's estimate is no rigid transform (NaN, a
-        reflection: :func:`~baselines.result.transform_problem`). Registers in the working frame and within the
-        point budget (:mod:`baselines.conditioning`); the result is returned as float64 as the method produced it
-        (mapped back to the input's frame); :meth:`register_result` (which the runners use) reports such failures
-        in its result instead, with the time and the inlier fit.
+        bad inputs and for a pair that cannot determine this method's rotation (:meth:`_refuse_undetermined`), and
+        RegistrationError where the method found no transform or its estimate is no rigid transform (NaN, a
+        reflection: :func:`~baselines.result.transform_problem`). Registers each point once, in the method's frame
+        (:meth:`frame`) and within the point budget (:mod:`baselines.conditioning`); the result is returned as
+        float64 as the method produced it (mapped back to the input's frame); :meth:`register_result` (which the
+        runners use) reports such failures in its result instead, with the time and the inlier fit.
         """
         return self._rigid(self._register_conditioned(check_cloud(src, "src"), check_cloud(ref, "ref")))
 
@@ -162,6 +206,11 @@ class Registrator(ABC):
         :meth:`register` works without it (it just pays the cost on the first call).
         """
 
+    def frame(self, src: np.ndarray, ref: np.ndarray) -> Similarity | None:
+        """The similarity taking a checked pair (its points each once) into the frame this method registers in,
+        None when it registers the pair as given: the working frame (:func:`~baselines.conditioning.working_frame`)."""
+        return working_frame(src, ref)
+
     # -- for subclasses ----------------------------------------------------------------
 
     @abstractmethod
@@ -184,9 +233,17 @@ class Registrator(ABC):
                                     "clouds, or try another method")
         return estimate
 
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """Raise PointCloudError where a conditioned pair cannot determine a rotation by this method, beyond
+        :func:`~src.geometry.clouds.check_cloud`'s 3 points not on one line: here a planar cloud when
+        :attr:`planar_blind`; methods add what they need (more points, normals)."""
+        refuse_planar(self.name, self.planar_blind, src=src, ref=ref)
+
     def _register_conditioned(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        """:meth:`_register` of a checked pair in the working frame, within the point budget."""
-        src, ref, undo = condition(src, ref, normalise_frame=self.normalise_frame, budget=self.point_budget)
+        """:meth:`_register` of a checked pair conditioned (:func:`~baselines.conditioning.condition`: each point
+        once, in :meth:`frame`, within the point budget) and found able to determine the rotation."""
+        src, ref, undo = condition(src, ref, frame=self.frame, budget=self.point_budget)
+        self._refuse_undetermined(src, ref)
         return undo(_as_transform(self._register(src, ref)))
 
     def __repr__(self) -> str:

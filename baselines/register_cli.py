@@ -11,10 +11,11 @@ Estimates ``T`` with ``B ≈ T·A`` (the source ``A`` moved onto the reference `
 RMSE, time, method and checkpoint, normalisation), ``<A>_aligned.ply`` (the whole source moved by ``T``)
 and ``before_after.png`` (the pair as given, then aligned).
 
-Files: PLY, PCD or XYZ text (:mod:`src.data.point_files`). A pair that does not lie in the unit sphere
-(e.g. scans in metres or millimetres) is registered after one similarity (the centroid of both clouds
-and their largest distance from it) and ``T`` mapped back, so every method works in the frame it is
-tuned for. Learned methods register a seeded random subset of ``--points`` points of each cloud (their
+Files: PLY, PCD or XYZ text (:mod:`src.data.point_files`). The pair is registered as
+:meth:`~baselines.base.Registrator.register` registers any pair: one that does not lie in the frame the method
+is tuned for (e.g. scans in millimetres) is registered after one similarity and ``T`` mapped back (a classical
+method's working frame, a network's training frame: :mod:`baselines.conditioning`), and ``result.json`` records
+that similarity. Learned methods register a seeded random subset of ``--points`` points of each cloud (their
 training clouds' size; the estimate applies to the whole clouds) and take a shipped checkpoint unless
 ``--checkpoint`` or ``--weights`` is given. Fitness and inlier RMSE are measured on the whole clouds in
 their own units: the share of moved source points within ``--threshold`` of a reference point (default
@@ -34,12 +35,11 @@ import numpy as np
 import yaml
 
 from baselines.cloud_panels import REFERENCE, SOURCE, centre, half_size, panel
-from baselines.conditioning import WORKING_RADIUS, Similarity, pair_radius
+from baselines.conditioning import deduplicated, pair_radius
 from baselines.methods import display_name
 from baselines.registry import get_registrator
 from baselines.result import FIT_THRESHOLD, check_threshold, inlier_fit
 from src.data.point_files import read_points, write_ply
-from src.data.scans import shared_similarity
 from src.geometry.numpy_rigid import apply_transform
 from src.utils.errors import ConfigError, UserError
 from src.utils.files import disk_errors
@@ -48,16 +48,6 @@ from src.utils.files import disk_errors
 LEARNED_POINTS = 768
 #: Points per cloud drawn in the picture.
 PICTURE_POINTS = 4000
-
-
-def frame_of(src: np.ndarray, ref: np.ndarray) -> Similarity | None:
-    """The similarity into the unit sphere (centroid of both clouds, their largest distance from it), or
-    None when the pair already lies in it at a size the methods are tuned for."""
-    centre, scale = shared_similarity(src, ref)
-    inside = max(float(np.linalg.norm(c, axis=1).max()) for c in (src, ref)) <= 1.0
-    if inside and pair_radius(src, ref) >= WORKING_RADIUS[0]:
-        return None
-    return Similarity(centre, scale)
 
 
 def _subset(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -81,17 +71,16 @@ def register_files(src_path: Path, ref_path: Path, method: str, options: dict[st
     ``ref``, ``aligned``) and the registrator's ``label``."""
     src, ref = read_points(src_path), read_points(ref_path)
     registrator = get_registrator(method, **options)
-    frame = frame_of(src, ref)
-    src_in, ref_in = (src, ref) if frame is None else (frame.apply(src), frame.apply(ref))
+    src_in, ref_in = src, ref
     if registrator.needs_training:
         rng = np.random.default_rng(seed)
-        src_in, ref_in = _subset(src_in, points, rng), _subset(ref_in, points, rng)
+        src_in, ref_in = _subset(src, points, rng), _subset(ref, points, rng)
     result = registrator.register_result(src_in, ref_in, threshold=None)
     if result.failed:
         raise UserError(f"{registrator.name} failed on this pair: {result.reason}")
-    transform = result.transform if frame is None else frame.map_back(result.transform)
-    scale = 1.0 if frame is None else frame.scale
-    threshold = FIT_THRESHOLD * (pair_radius(src, ref) if frame is None else scale) if threshold is None else threshold
+    transform = result.transform
+    frame = registrator.frame(deduplicated(src_in), deduplicated(ref_in))
+    threshold = FIT_THRESHOLD * pair_radius(src, ref) if threshold is None else threshold
     fitness, rmse = inlier_fit(src, ref, transform, threshold)
     cos = (np.trace(transform[:3, :3]) - 1) / 2
     checkpoint = getattr(registrator.config, "checkpoint", None)
@@ -100,7 +89,7 @@ def register_files(src_path: Path, ref_path: Path, method: str, options: dict[st
         "method": registrator.name, "label": getattr(registrator, "label", display_name(registrator.name)),
         "checkpoint": None if checkpoint is None else str(checkpoint),
         "registered_points": [len(src_in), len(ref_in)],
-        "normalisation": None if frame is None else {"centre": frame.centre.tolist(), "scale": scale},
+        "normalisation": None if frame is None else {"centre": frame.centre.tolist(), "scale": frame.scale},
         "transform": transform.tolist(),
         "rotation_deg": math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0)))),
         "translation": float(np.linalg.norm(transform[:3, 3])),
@@ -146,7 +135,7 @@ def summary(record: dict[str, Any]) -> str:
     """What the command prints first: the method, the transform, its size and the fit."""
     rows = "\n".join("  " + " ".join(f"{v:12.6f}" for v in row) for row in record["transform"])
     normalised = ("" if record["normalisation"] is None else
-                  f" (registered in the unit sphere: scale {record['normalisation']['scale']:.4g}, mapped back)")
+                  f" (registered in the method's frame: scale {record['normalisation']['scale']:.4g}, mapped back)")
     used = "" if record["checkpoint"] is None else f"\ncheckpoint: {record['checkpoint']}"
     return (f"{record['label']}: {record['source']} ({record['points'][0]:,} points) -> {record['reference']} "
             f"({record['points'][1]:,} points){normalised}{used}\n"

@@ -11,7 +11,16 @@ from typing import Any
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive
-from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, search_param, to_pcd
+from baselines.classical._open3d import (
+    NORMAL_ORIENTATIONS,
+    estimate_normals,
+    found_transform,
+    open3d,
+    require_normals,
+    search_param,
+    to_pcd,
+)
+from baselines.conditioning import voxel_down_sample
 from src.utils.errors import ConfigError
 
 
@@ -75,17 +84,26 @@ class FPFHConfig(NormalsConfig):
 
 class FPFHMatcher(Registrator):
     """A method that matches the FPFH features of both clouds in one Open3D pipeline (FGR, RANSAC): the
-    features come from :meth:`FPFHConfig.pair_features`, the match from :meth:`_match`."""
+    features come from :meth:`FPFHConfig.pair_features`, the match from :meth:`_match` (its ``solver`` name)."""
 
     needs_normals = True  # estimated here from the points; none need to be supplied
+    planar_blind = "its FPFH features are all alike (the normals are parallel), so no match tells the points apart"
+    solver = "feature matching"
 
     def setup(self) -> None:
         open3d()
 
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """A planar cloud, or one with fewer than six normals (on the clouds the features are computed on)."""
+        super()._refuse_undetermined(src, ref)
+        cfg: FPFHConfig = self.config
+        src, ref = (c if cfg.voxel_size is None else voxel_down_sample(c, cfg.voxel_size) for c in (src, ref))
+        require_normals(self.name, cfg.normal_radius, cfg.normal_max_nn, src=src, ref=ref)
+
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         (src_pcd, src_fpfh), (ref_pcd, ref_fpfh) = self.config.pair_features(src, ref)
         result = self._match(open3d().pipelines.registration, src_pcd, ref_pcd, src_fpfh, ref_fpfh)
-        return self._refine(np.asarray(result.transformation, dtype=np.float64), src, ref)
+        return self._refine(found_transform(self.name, result, self.solver), src, ref)
 
     @abstractmethod
     def _match(self, reg: Any, src_pcd: Any, ref_pcd: Any, src_fpfh: Any, ref_fpfh: Any) -> Any:

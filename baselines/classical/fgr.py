@@ -65,6 +65,7 @@ class FGR(FPFHMatcher):
 
     name = "fgr"
     config_cls = FGRConfig
+    solver = "FGR"
 
     def _match(self, reg, src_pcd, ref_pcd, src_fpfh, ref_fpfh):
         cfg: FGRConfig = self.config

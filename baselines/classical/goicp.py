@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, _positive, _within
+from baselines.base import Registrator, RegistratorConfig, _positive, _within, require_points
 from src.utils.errors import ConfigError
 from src.geometry.numpy_rigid import project_to_rotation, rigid_transform
 
@@ -102,6 +102,20 @@ class GoICP(Registrator):
                 "method 'goicp' needs the optional py-goicp extension, which is not installed; "
                 f"build and install it with `{INSTALL_HINT}`"
             )
+
+    def fewest_points(self) -> int:
+        """Points a cloud needs: Go-ICP's trimming keeps ``int(N · (1 − trim_fraction))`` of the source's N (at
+        least 1), and a rotation needs 3."""
+        keep = 1.0 - float(self.config.trim_fraction)
+        need = math.ceil(3 / keep)
+        return need if int(need * keep) >= 3 else need + 1
+
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """Fewer points than :meth:`fewest_points`."""
+        super()._refuse_undetermined(src, ref)
+        require_points(self.name, src, ref, self.fewest_points(),
+                       f"for Go-ICP's trimming (it keeps int(N · (1 − trim_fraction={self.config.trim_fraction:g})) "
+                       "of them, and a rotation needs 3)")
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         import py_goicp

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, _positive
-from baselines.classical._open3d import open3d, to_pcd
+from baselines.classical._open3d import found_transform, open3d, to_pcd
 
 
 @dataclass
@@ -73,12 +73,13 @@ class ICP(Registrator):
         o3d = open3d()
         reg = o3d.pipelines.registration
         cfg: ICPConfig = self.config
+        start = np.eye(4)
         result = reg.registration_icp(
             to_pcd(src),
             to_pcd(ref),
             float(cfg.max_correspondence_distance),
-            np.eye(4),
+            start,
             reg.TransformationEstimationPointToPoint(with_scaling=False),
             cfg.criteria(),
         )
-        return np.asarray(result.transformation, dtype=np.float64)
+        return found_transform(self.name, result, "ICP", start)

@@ -13,8 +13,11 @@ class Identity(Registrator):
     name = "identity"
     needs_training = False
     needs_normals = False
-    normalise_frame = False  # the identity in any frame is the identity
     point_budget = None  # reads no point
+
+    def frame(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """None: the identity in any frame is the identity."""
+        return None
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         return np.eye(4)

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import _positive
+from baselines.base import Registrator, _positive, refuse_planar
 from baselines.classical._features import NormalsConfig
-from baselines.classical._open3d import one_thread, open3d, to_pcd
+from baselines.classical._open3d import found_transform, one_thread, open3d, require_normals, to_pcd
 from baselines.classical.icp import ICP, ICPConfig
 
 
@@ -51,14 +51,22 @@ class PointToPlaneICP(ICP):
     name = "point_to_plane_icp"
     needs_normals = True  # estimated here from the points
     config_cls = PointToPlaneICPConfig
+    planar_blind = "the residuals along the reference's normals, all parallel, do not see a motion within the plane"
+
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """A planar reference, or one with fewer than six normals (only the reference's are used)."""
+        cfg: PointToPlaneICPConfig = self.config
+        refuse_planar(self.name, self.planar_blind, ref=ref)
+        require_normals(self.name, cfg.normal_radius, cfg.normal_max_nn, ref=ref)
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         reg = open3d().pipelines.registration
         cfg: PointToPlaneICPConfig = self.config
+        start = np.eye(4)
         with one_thread():  # with several, a pair near a tie ended 72-130 deg apart in 6 of 200 runs (golden study)
             result = reg.registration_icp(to_pcd(src), cfg.cloud_with_normals(ref), float(cfg.max_correspondence_distance),
-                                          np.eye(4), reg.TransformationEstimationPointToPlane(), cfg.criteria())
-        return np.asarray(result.transformation, dtype=np.float64)
+                                          start, reg.TransformationEstimationPointToPlane(), cfg.criteria())
+        return found_transform(self.name, result, "point-to-plane ICP", start)
 
 
 class GeneralizedICP(PointToPlaneICP):
@@ -66,12 +74,19 @@ class GeneralizedICP(PointToPlaneICP):
 
     name = "gicp"
     config_cls = GeneralizedICPConfig
+    planar_blind = ""  # its plane-to-plane covariances still weigh a motion within the plane
+
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """Nothing beyond the interface's check: where a point has no normal its covariance falls back to a
+        point's, and GICP registers planar and few-point clouds."""
+        Registrator._refuse_undetermined(self, src, ref)
 
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         reg = open3d().pipelines.registration
         cfg: GeneralizedICPConfig = self.config
+        start = np.eye(4)
         result = reg.registration_generalized_icp(
-            cfg.cloud_with_normals(src), cfg.cloud_with_normals(ref), float(cfg.max_correspondence_distance), np.eye(4),
+            cfg.cloud_with_normals(src), cfg.cloud_with_normals(ref), float(cfg.max_correspondence_distance), start,
             reg.TransformationEstimationForGeneralizedICP(float(cfg.epsilon)), cfg.criteria(),
         )
-        return np.asarray(result.transformation, dtype=np.float64)
+        return found_transform(self.name, result, "GICP", start)

@@ -58,6 +58,7 @@ class RANSAC(FPFHMatcher):
 
     name = "ransac"
     config_cls = RANSACConfig
+    solver = "RANSAC"
 
     def _match(self, reg, src_pcd, ref_pcd, src_fpfh, ref_fpfh):
         cfg: RANSACConfig = self.config

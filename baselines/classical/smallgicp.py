@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig, _positive
+from baselines.base import Registrator, RegistratorConfig, _positive, require_found
 from baselines.classical._optional import NeedsPackage
 from src.utils.errors import ConfigError
 
@@ -71,4 +71,6 @@ class SmallGICP(NeedsPackage, Registrator):
             result = small_gicp.align(voxels, src_pc, **options)
         else:
             result = small_gicp.align(ref_pc, src_pc, ref_tree, registration_type="GICP", **options)
-        return np.asarray(result.T_target_source, dtype=np.float64)
+        transform = np.asarray(result.T_target_source, dtype=np.float64)
+        require_found(self.name, cfg.registration_type, int(result.num_inliers), np.array_equal(transform, np.eye(4)))
+        return transform

@@ -18,8 +18,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from baselines.base import Registrator, RegistratorConfig, _positive
-from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, to_pcd
-from src.utils.errors import ConfigError
+from baselines.classical._open3d import NORMAL_ORIENTATIONS, estimate_normals, open3d, require_normals, to_pcd
+from src.utils.errors import ConfigError, RegistrationError
 from src.geometry.numpy_rigid import apply_transform, project_to_rotation, rigid_transform, rotation_angle
 
 
@@ -128,6 +128,7 @@ class SymmetricICP(Registrator):
     needs_training = False
     needs_normals = True  # estimated here from the points with Open3D
     config_cls = SymmetricICPConfig
+    planar_blind = "the residuals along its normals, all parallel, do not see a motion within the plane"
 
     def setup(self) -> None:
         open3d()
@@ -136,24 +137,36 @@ class SymmetricICP(Registrator):
         cfg: SymmetricICPConfig = self.config
         return estimate_normals(to_pcd(points), cfg.normal_radius, cfg.normal_max_nn, cfg.normal_orientation)
 
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """A planar cloud, or one with fewer than six normals."""
+        super()._refuse_undetermined(src, ref)
+        cfg: SymmetricICPConfig = self.config
+        require_normals(self.name, cfg.normal_radius, cfg.normal_max_nn, src=src, ref=ref)
+
     def _register(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """The composed steps; RegistrationError when not even the first step could be taken."""
         cfg: SymmetricICPConfig = self.config
         src_normals = self.normals(src)
         ref_normals = self.normals(ref)
         src_tree, ref_tree = cKDTree(src), cKDTree(ref)
 
         transform = np.eye(4)
-        for _ in range(int(cfg.max_iterations)):
+        for iteration in range(int(cfg.max_iterations)):
             src_idx, ref_idx = nearest_pairs(
                 src_tree, ref_tree, transform, float(cfg.max_correspondence_distance), cfg.two_way
             )
             n = normal_sums(src_normals[src_idx] @ transform[:3, :3].T, ref_normals[ref_idx])
             good = np.einsum("ij,ij->i", n, n) > 1e-12
-            if int(good.sum()) < cfg.min_correspondences:
-                break
-            src_idx, ref_idx = src_idx[good], ref_idx[good]
-            step = symmetric_step(apply_transform(transform, src[src_idx]), ref[ref_idx], n[good])
+            step = None
+            if int(good.sum()) >= cfg.min_correspondences:
+                src_idx, ref_idx = src_idx[good], ref_idx[good]
+                step = symmetric_step(apply_transform(transform, src[src_idx]), ref[ref_idx], n[good])
             if step is None:
+                if iteration == 0:
+                    raise RegistrationError(
+                        f"{self.name}: found no transform: its first step had {int(good.sum())} correspondences with "
+                        f"normals (min_correspondences={cfg.min_correspondences}) and no solvable system; try another "
+                        "method")
                 break
             transform = step @ transform
             angle = rotation_angle(step[:3, :3], degrees=False)

@@ -24,6 +24,13 @@ Without either, a method uses its shipped checkpoint (``checkpoints/*.ckpt``, :f
 label names it) or, when none is shipped for it, says so. ``fresh_weights=true`` (instead of a checkpoint) builds the network from ``conf/model/<name>.yaml``
 with freshly initialised weights — for timing only (:mod:`benchmarks.speed` labels it so); the
 estimates of such a network are meaningless.
+
+A network registers each pair in the frame it was trained in (:class:`~baselines.conditioning.TrainingFrame`,
+from the card beside its checkpoint, ``<checkpoint>.json``; the data pipeline's frame without one): a pair in
+other units or far from the origin is registered in the unit sphere and its estimate mapped back (the same
+rotation, the translation in the caller's units); a pair inside (every pair of the protocols) as given. Repeated
+points count once; a pair with fewer points than the network takes (``min_points``) or planar where its
+features cannot resolve a plane (``planar_blind``) is refused with one line.
 """
 
 from __future__ import annotations
@@ -38,13 +45,14 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from baselines.base import Registrator, RegistratorConfig
+from baselines.base import Registrator, RegistratorConfig, refuse_planar, require_points
+from baselines.conditioning import Similarity, TrainingFrame, condition
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
 from src.geometry.clouds import MIN_POINTS, check_cloud
 from src.models.pretrained import verify_card
-from src.utils.errors import CheckpointError, ConfigError, PointCloudError
+from src.utils.errors import CheckpointError, ConfigError
 from src.utils.paths import SHIPPED_DIR
 
 __all__ = ["LEARNED_METHODS", "LearnedConfig", "LearnedRegistrator", "run_batches"]
@@ -112,6 +120,21 @@ def shipped_checkpoint(method: str, target: str, directory: Path | None = None) 
     return verify_card(chosen, cards[chosen])
 
 
+def card_frame(checkpoint: str | None) -> TrainingFrame:
+    """The training frame a checkpoint's card records (``<checkpoint>.json``, its ``experiment.pair``: what
+    :mod:`src.models.pretrained` exports beside a checkpoint); the data pipeline's (:class:`TrainingFrame`'s
+    defaults) for published or fresh weights and a checkpoint without a card."""
+    card = Path(checkpoint).with_suffix(".json") if checkpoint else None
+    if card is None or not card.is_file():
+        return TrainingFrame()
+    try:
+        pair = json.loads(card.read_text()).get("experiment", {}).get("pair")
+    except (ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{card} lies beside {checkpoint} but is no checkpoint card ({exc}): move it away, or "
+                              "export the checkpoint again (python -m src.models.pretrained export)") from None
+    return TrainingFrame.of_pair(pair) if isinstance(pair, dict) else TrainingFrame()
+
+
 def trained_on(card: dict[str, Any]) -> str:
     """What a shipped checkpoint's card says it was trained on, e.g. ``real_airplane: airplane shapes of
     modelnet40_resampled, TS, PRNet manner, rotations up to 45°, noise σ 0``."""
@@ -154,8 +177,6 @@ class LearnedRegistrator(Registrator):
     name: ClassVar[str] = "learned"
     needs_training: ClassVar[bool] = True
     needs_normals: ClassVar[bool] = False
-    # a network sees the clouds as given, by register() and by the batched run_batches alike
-    normalise_frame: ClassVar[bool] = False
     point_budget: ClassVar[int | None] = None
     config_cls: ClassVar[type[RegistratorConfig]] = LearnedConfig
     network_target: ClassVar[str] = ""
@@ -166,6 +187,7 @@ class LearnedRegistrator(Registrator):
         self._module = None
         self._device = None
         self.shipped: str | None = None  # the name of the shipped checkpoint used when none was given
+        self.training_frame = TrainingFrame()  # the frame the network was trained in (its card's, below)
         sources = [name for name in ("checkpoint", "weights", "fresh_weights") if getattr(cfg, name)]
         if len(sources) > 1:
             raise ConfigError(f"{self.name}: give one of checkpoint=PATH, weights=official:<name> or fresh_weights=true")
@@ -188,6 +210,7 @@ class LearnedRegistrator(Registrator):
                 f"checkpoint {cfg.checkpoint} holds a {found} network, not {self.network_target} "
                 f"(method '{self.name}'){_used_as(found)}"
             )
+        self.training_frame = card_frame(cfg.checkpoint)
 
     # -- labels ------------------------------------------------------------------------
 
@@ -275,13 +298,21 @@ class LearnedRegistrator(Registrator):
 
     # -- registration ------------------------------------------------------------------
 
+    def frame(self, src: np.ndarray, ref: np.ndarray) -> Similarity | None:
+        """The similarity into the network's training frame (:attr:`training_frame`), None for a pair inside it."""
+        return self.training_frame(src, ref)
+
+    def _refuse_undetermined(self, src: np.ndarray, ref: np.ndarray) -> None:
+        """Fewer points than the network takes (its ``min_points``), or a planar cloud where its features cannot
+        resolve one (its ``planar_blind``)."""
+        network = self.module.network
+        require_points(self.name, src, ref, getattr(network, "min_points", MIN_POINTS), "for this network")
+        refuse_planar(self.name, getattr(network, "planar_blind", ""), src=src, ref=ref)
+
     def _forward(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         import torch
 
         module = self.module
-        need, fewest = getattr(module.network, "min_points", MIN_POINTS), min(src.shape[-2], ref.shape[-2])
-        if fewest < need:
-            raise PointCloudError(f"{self.name}: each cloud needs at least {need} points for this network, got {fewest}")
         with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []), torch.inference_mode():
             torch.manual_seed(self.config.seed)
             points_src = torch.as_tensor(src, dtype=torch.float32, device=self.device)
@@ -300,7 +331,16 @@ class LearnedRegistrator(Registrator):
         return self._forward(src[None], ref[None])[0]
 
     def _register_batch(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        return self._forward(src, ref)
+        """Each pair conditioned as :meth:`register` does and checked, then all through the network in one forward
+        pass (pair by pair where repeated points left them of different sizes), each estimate mapped back."""
+        pairs = [condition(s, r, frame=self.frame, budget=self.point_budget) for s, r in zip(src, ref)]
+        for s, r, _ in pairs:
+            self._refuse_undetermined(s, r)
+        if len({(len(s), len(r)) for s, r, _ in pairs}) == 1:
+            estimates = self._forward(np.stack([s for s, _, _ in pairs]), np.stack([r for _, r, _ in pairs]))
+        else:
+            estimates = np.stack([self._register(s, r) for s, r, _ in pairs])
+        return np.stack([undo(estimate) for (_, _, undo), estimate in zip(pairs, estimates)])
 
 
 def _group_by_shape(pairs: Sequence[tuple[np.ndarray, np.ndarray]], batch_size: int) -> list[list[int]]:

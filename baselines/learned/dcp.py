@@ -61,6 +61,11 @@ class DCP(nn.Module):
         self.embedding = DGCNN([scaled(c, width) for c in (64, 64, 128, 256)], emb, k=k, dynamic=False)
         self.pointer = AttentionPointer(emb, n_blocks, n_heads, scaled(ff_dims, width), dropout) if pointer else None
 
+    @property
+    def min_points(self) -> int:
+        """Fewest points per cloud: its DGCNN's."""
+        return self.embedding.min_points
+
     def head(self, feat_src: Tensor, feat_ref: Tensor, src: Tensor, ref: Tensor) -> Tensor:
         """SVD head: the rigid transform (B,4,4) taking ``src`` to its soft correspondences in ``ref``."""
         return soft_correspondence_svd(src, ref, torch.softmax(matching_logits(feat_src, feat_ref), dim=-1))[0]

@@ -98,6 +98,14 @@ class DeepGMR(nn.Module):
         """Fewest points per cloud: the RRI features take each point's k nearest other points."""
         return self.k + 1 if self.use_rri else MIN_POINTS
 
+    @property
+    def planar_blind(self) -> str:
+        """Why a planar cloud leaves its rotation undetermined (``""``: it does not): on a plane every neighbour's
+        projection (φ of the RRI features) falls on one line, so the features lose the turn's sense."""
+        if not self.use_rri:
+            return ""
+        return "its RRI features lose the sense of each turn (every neighbour's projection falls on one line)"
+
     def forward(self, points_src: Tensor, points_ref: Tensor, transform_gt: Tensor | None = None) -> dict:
         logits_src = self.backbone(self.point_features(points_src))
         logits_ref = self.backbone(self.point_features(points_ref))

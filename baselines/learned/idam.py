@@ -110,6 +110,12 @@ class IDAM(nn.Module):
         self.sim_scores = nn.ModuleList(MLP([c32, c32, 1], last_activation=False) for _ in range(num_iters))
         self.weight_logits = nn.ModuleList(MLP([c32, c32, 1], last_activation=False) for _ in range(num_iters))
 
+    @property
+    def min_points(self) -> int:
+        """Fewest points per cloud: its k-NN graph takes each point's k nearest (itself included), and the hard point
+        elimination keeps N // keep_divisor points for the rotation, which needs 3."""
+        return max(self.embedding.k, 3 * self.keep_divisor)
+
     @torch.no_grad()
     def _training_selection(self, src: Tensor, ref: Tensor, transform_gt: Tensor, num_keep: int) -> tuple[Tensor, ...]:
         """Source indices (half true matches, half not), their GT nearest reference points, labels."""

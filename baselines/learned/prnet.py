@@ -95,6 +95,11 @@ class PRNet(nn.Module):
         """Whether its estimates at test are random draws (the Gumbel noise of the official test loop)."""
         return self.sampler == "gumbel_softmax" and not self.deterministic_eval
 
+    @property
+    def min_points(self) -> int:
+        """Fewest points per cloud: its DGCNN's."""
+        return self.embedding.min_points
+
     def keypoints(self, points: Tensor, feat: Tensor) -> tuple[Tensor, Tensor]:
         """The ``num_keypoints`` points (and features) with the largest feature norms."""
         if feat.shape[1] <= self.num_keypoints:

@@ -104,6 +104,13 @@ class RPMNet(nn.Module):
         self.feat_extractor = FeatureExtraction(tuple(features), scaled(feat_dim, width, 8), radius, num_neighbors)
 
     @property
+    def planar_blind(self) -> str:
+        """Why a planar cloud leaves its rotation undetermined (``""``: it does not): its point-pair features."""
+        if "ppf" not in self.feat_extractor.features:
+            return ""
+        return "its point-pair features are all alike (the normals are parallel)"
+
+    @property
     def uses_normals(self) -> bool:
         """Whether :meth:`forward` needs ``normals_src``/``normals_ref`` (``normals="given"``)."""
         return self.normals == "given"

@@ -119,6 +119,12 @@ class DGCNN(nn.Module):
             c_prev = c
         self.fuse = MLP([sum(channels), emb_dims], negative_slope=negative_slope)
 
+    @property
+    def min_points(self) -> int:
+        """Fewest points per cloud for the features it was trained on: the k-NN graph takes each point's k nearest
+        (itself included; fewer points shrink every neighbourhood)."""
+        return self.k
+
     def forward(self, points: Tensor) -> Tensor:
         k = min(self.k, points.shape[1])
         pooled: list[Tensor] = []

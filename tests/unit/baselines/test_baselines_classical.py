@@ -11,7 +11,7 @@ from baselines.classical import goicp as goicp_module
 from baselines.classical.fgr import FGR
 from baselines.classical.symmetric_icp import symmetric_step
 from baselines.testing import euler_transform, make_pair, rotation_error_deg, translation_error
-from src.utils.errors import ConfigError, PointCloudError
+from src.utils.errors import ConfigError, PointCloudError, RegistrationError
 from src.geometry.numpy_rigid import apply_transform
 
 SMALL = euler_transform((10.0, -8.0, 6.0), (0.1, -0.05, 0.08))  # ~10° about a tilted axis
@@ -71,9 +71,10 @@ def test_symmetric_step_is_exact_in_rotation_for_exact_correspondences():
 
 
 def test_icp_needs_a_large_enough_correspondence_distance():
-    # with a tiny threshold no pair is within reach and ICP stays at the identity
+    # with a tiny threshold no pair is within reach: ICP found nothing, and says so instead of returning the identity
     reg = get_registrator("icp", max_correspondence_distance=1e-4)
-    np.testing.assert_allclose(reg.register(*make_pair(SMALL, 300, seed=1)), np.eye(4))
+    with pytest.raises(RegistrationError, match=r"^icp: found no transform: ICP ended with 0 correspondences"):
+        reg.register(*make_pair(SMALL, 300, seed=1))
 
 
 @pytest.mark.parametrize("noise", [0.0, 0.005])

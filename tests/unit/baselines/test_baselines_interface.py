@@ -308,5 +308,5 @@ def test_condition_is_one_step_and_its_undo_maps_the_estimate_back():
     assert max(np.abs(cond_src).max(), np.abs(cond_ref).max()) < 10  # moved into the working frame
     np.testing.assert_allclose(undo(_kabsch(cond_src, cond_ref)), truth, atol=1e-8)
     inside_src, inside_ref = src / 1e4 - 1.0, ref / 1e4 - 1.0
-    same_src, same_ref, same_undo = condition(inside_src, inside_ref, normalise_frame=False, budget=None)
+    same_src, same_ref, same_undo = condition(inside_src, inside_ref, frame=None, budget=None)
     assert same_src is inside_src and same_ref is inside_ref and same_undo(truth) is truth
