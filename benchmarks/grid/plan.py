@@ -31,7 +31,8 @@ from baselines.base import Registrator
 from baselines.methods import METHODS, default_grid_methods
 from src.config import register_resolvers
 from src.data.cache import file_sha256
-from src.utils.errors import CheckpointError, ConfigError
+from src.utils.errors import CheckpointError, ConfigError, UserError
+from src.utils.files import read_parquet
 from src.pair_sets import TestSet, build_test_set
 
 # torch, pandas, torchmetrics and lightning are imported where they are used: the worker processes
@@ -181,6 +182,12 @@ def _digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def numbers_digest(summary: Mapping[str, Any]) -> str:
+    """The checksum of a cell's summary (as read back from its JSON): every field but ``checksum`` itself, the
+    per-pair file's ``pairs_sha256`` included."""
+    return _digest({key: value for key, value in summary.items() if key != "checksum"})
+
+
 @dataclass
 class Cell:
     method: str
@@ -209,29 +216,39 @@ class Cell:
         return f"{self.method}/{self.test_set.key}"
 
     def load(self) -> dict[str, Any] | None:
-        """The finished cell's summary, or None if it must be computed: never run, interrupted (no
-        JSON yet), or a file that does not read back (with a warning)."""
-        import pandas as pd
-        import pyarrow as pa
-
+        """The finished cell's summary when its files prove intact, else None (it must be computed): never run,
+        interrupted (no JSON yet), or (with one warning line) a file that does not read back, a summary whose
+        numbers do not match the checksum written with them (:func:`numbers_digest`), a per-pair file changed since
+        (its sha256), or a cell written without these checksums."""
         if not (self.pairs_path.is_file() and self.summary_path.is_file()):
             return None
         try:
             summary = json.loads(self.summary_path.read_text())
         except (OSError, ValueError) as err:
-            return self._damaged(self.summary_path, f"{type(err).__name__}: {err}")
+            return self._damaged(self.summary_path, f"is damaged ({type(err).__name__}: {err})")
+        if not isinstance(summary, dict):
+            return self._damaged(self.summary_path, "is damaged (not a JSON object)")
         if summary.get("digest") != self.digest or summary.get("complete") is not True:
             return None
+        if "checksum" not in summary:
+            return self._damaged(self.summary_path, "cannot be verified (written without a checksum, by an earlier "
+                                                    "version)")
+        if summary["checksum"] != numbers_digest(summary):
+            return self._damaged(self.summary_path, "was changed after it was written (its numbers do not match "
+                                                    "the checksum written with them)")
+        if file_sha256(self.pairs_path) != summary.get("pairs_sha256"):
+            return self._damaged(self.pairs_path, "was changed after it was written (its sha256 is not the one "
+                                                  f"{self.summary_path.name} records)")
         try:
-            frame = pd.read_parquet(self.pairs_path)
-        except (OSError, ValueError, pa.ArrowException) as err:
-            return self._damaged(self.pairs_path, type(err).__name__)
+            frame = read_parquet(self.pairs_path)
+        except UserError as err:
+            return self._damaged(self.pairs_path, f"is damaged ({err})")
         if len(frame) != summary.get("n_pairs"):
-            return self._damaged(self.pairs_path, f"{len(frame)} rows for {summary.get('n_pairs')} pairs")
+            return self._damaged(self.pairs_path, f"is damaged ({len(frame)} rows for {summary.get('n_pairs')} pairs)")
         return summary
 
     def _damaged(self, path: Path, problem: str) -> None:
-        print(f"warning: cell {self.key}: {path.name} is damaged ({problem}); recomputing it", file=sys.stderr)
+        print(f"warning: cell {self.key}: {path.name} {problem}; recomputing it", file=sys.stderr)
 
 
 # --- the grid ---------------------------------------------------------------------------------------

@@ -16,9 +16,10 @@ from omegaconf import DictConfig
 
 from baselines import RegistrationResult, run_pairs
 from baselines.methods import display_name
-from benchmarks.grid.plan import Cell, plan
+from benchmarks.grid.plan import Cell, numbers_digest, plan
 from src.config import euler_seq_for
-from src.utils.files import write_atomic
+from src.data.cache import file_sha256
+from src.utils.files import read_parquet, write_atomic, write_parquet, write_text_atomic
 from src.metrics import CHAMFER, ERROR_R, ERROR_T, MAE_R, MAE_T, MODIFIED_CHAMFER, PAIR_ERRORS
 
 TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
@@ -89,7 +90,8 @@ def register_cells(cells: Sequence[Cell], cfg: DictConfig) -> list[tuple[list[Re
 
 
 def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) -> dict[str, Any]:
-    """Score a registered cell, write its parquet, then its JSON (the commit marker); return the summary."""
+    """Score a registered cell, write its parquet, then its JSON (the commit marker, with the parquet's sha256 and
+    a checksum of its own numbers: :meth:`Cell.load` reuses the cell only while both match); return the summary."""
     import pandas as pd
 
     t = cell.test_set
@@ -112,7 +114,7 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
         **{name: errors[name] for name in PAIR_ERRORS},
     })
     cell.folder.mkdir(parents=True, exist_ok=True)
-    write_atomic(cell.pairs_path, lambda p: frame.to_parquet(p, index=False))
+    write_parquet(frame, cell.pairs_path)
     n_failed = int(frame["failed"].sum())
     summary = {
         "digest": cell.digest,
@@ -126,15 +128,18 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
         "euler_seq": euler_seq,
         "n_pairs": len(results),
         "n_failed": n_failed,
-        "failure_reasons": frame.loc[frame["failed"], "reason"].value_counts().to_dict(),
+        "failure_reasons": {k: int(v) for k, v in frame.loc[frame["failed"], "reason"].value_counts().items()},
         "seconds": float(frame["seconds"].sum()),
         "wall_seconds": wall,
         "metrics": metrics,
         "definition": cell.definition,
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "complete": True,
+        "pairs_sha256": file_sha256(cell.pairs_path),
     }
-    write_atomic(cell.summary_path, lambda p: p.write_text(json.dumps(summary, indent=2, default=str)))
+    summary = json.loads(json.dumps(summary, default=str))  # checksummed as it reads back
+    summary["checksum"] = numbers_digest(summary)
+    write_text_atomic(cell.summary_path, json.dumps(summary, indent=2))
     return summary
 
 
@@ -207,8 +212,8 @@ def run_grid(cfg: DictConfig) -> GridResult:
                 bar.update(1)
     summaries = [done[cell.digest] for cell in cells]
     tidy = pd.DataFrame([row for s in summaries for row in tidy_rows(s)], columns=list(TIDY_COLUMNS))
-    pairs = pd.concat([pd.read_parquet(cell.pairs_path) for cell in cells], ignore_index=True)
-    write_atomic(output_dir / "results.parquet", lambda p: tidy.to_parquet(p, index=False))
+    pairs = pd.concat([read_parquet(cell.pairs_path) for cell in cells], ignore_index=True)
+    write_parquet(tidy, output_dir / "results.parquet")
     write_atomic(output_dir / "results.csv", lambda path: tidy.to_csv(path, index=False))
-    write_atomic(output_dir / "pairs.parquet", lambda p: pairs.to_parquet(p, index=False))
+    write_parquet(pairs, output_dir / "pairs.parquet")
     return GridResult(tidy, pairs, summaries, len(cells) - len(pending), len(pending), notes, output_dir)

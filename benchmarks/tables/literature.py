@@ -24,6 +24,7 @@ import pandas as pd
 from baselines.methods import find_method
 from benchmarks.tables.render import FRAGMENT_NEEDS, LATEX_PACKAGES, latex_escape, read_inputs
 from src.metrics import ERROR_R, ERROR_T, MODIFIED_CHAMFER
+from src.utils.errors import UserError
 
 PROTOCOLS = {"modelnet": "ModelNet", "modellonet": "ModelLoNet"}
 #: Our experiments of each protocol: the protocol's own (conf/exp/modelnet.yaml, modellonet.yaml) and its stand-ins.
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         ours, paper = our_rows(read_inputs(args.inputs)), load_published(args.published)
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, UserError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     paper_rows = published_rows(paper)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import mmap
 import os
 import shutil
@@ -33,7 +34,9 @@ import numpy as np
 
 from src.data.datasets import DATASET_NAMES, get_dataset
 from src.utils.errors import DatasetError
-from src.utils.files import disk_error, disk_errors, preallocate
+from src.utils.files import disk_error, disk_errors, owned_prefix, preallocate, remove_stale_folders
+
+log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 2
 """2: ``content_hash`` covers the whole manifest; ``source`` holds ``paths`` and ``fingerprints``."""
@@ -231,8 +234,9 @@ class CacheWriter:
 
     ``manifest_fields`` holds :data:`REQUIRED_FIELDS` and optionally ``missing_splits``.
     Use as a context manager: an exception discards the temporary folder (a full disk or a folder
-    without write permission then raises one :class:`~src.utils.errors.DiskError` line). The memory-mapped
-    arrays are preallocated, so a full disk fails when a split is added, never by ``SIGBUS`` mid-write.
+    without write permission then raises one :class:`~src.utils.errors.DiskError` line); the folders that a
+    writer killed before its clean-up (``kill -9``) left beside the cache are deleted by the next writer. The
+    memory-mapped arrays are preallocated, so a full disk fails when a split is added, never by ``SIGBUS`` mid-write.
     """
 
     def __init__(self, out_dir: Path, manifest_fields: Mapping):
@@ -242,7 +246,8 @@ class CacheWriter:
         self.out_dir = Path(out_dir)
         with disk_errors(self._what, self.out_dir.parent):
             self.out_dir.parent.mkdir(parents=True, exist_ok=True)
-            self.tmp_dir = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.tmp-", dir=self.out_dir.parent))
+            self._remove_stale()
+            self.tmp_dir = Path(tempfile.mkdtemp(prefix=owned_prefix(self._prefix("tmp")), dir=self.out_dir.parent))
         self.tmp_dir.chmod(0o755)  # mkdtemp makes it private
         self.fields = dict(manifest_fields)
         self._splits: dict[str, dict] = {}
@@ -287,12 +292,23 @@ class CacheWriter:
         (self.tmp_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
         old = None
         if self.out_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{self.out_dir.name}.old-", dir=self.out_dir.parent))
+            old = Path(tempfile.mkdtemp(prefix=owned_prefix(self._prefix("old")), dir=self.out_dir.parent))
             os.replace(self.out_dir, old / "cache")
         os.replace(self.tmp_dir, self.out_dir)
         if old is not None:
             shutil.rmtree(old)
         return Cache(self.out_dir, manifest)
+
+    def _prefix(self, kind: str) -> str:
+        """The start of a working folder's name beside the cache: ``tmp`` (being written), ``old`` (being replaced)."""
+        return f".{self.out_dir.name}.{kind}-"
+
+    def _remove_stale(self) -> None:
+        """Delete the working folders that a writer of this cache killed before it cleaned up left beside it."""
+        removed = [p for kind in ("tmp", "old") for p in remove_stale_folders(self.out_dir.parent, self._prefix(kind))]
+        if removed:
+            log.info(f"removed {len(removed)} folder(s) left by an interrupted build of {self.out_dir}: "
+                     f"{', '.join(p.name for p in removed)}")
 
     def _describe(self, file_name: str) -> dict:
         path = self.tmp_dir / file_name

@@ -4,8 +4,8 @@ own folder until it is done.
     python -m src.run.chain outputs/reproduce/unseen_shapes_ts --minutes 230 -- +exp=unseen_shapes sampling=ts trainer=gpu
     python -m src.run.chain outputs/reproduce/unseen_shapes_ts --submit --minutes 240 --slurm slurm_partition=gpu -- ...
 
-Each call runs ``python -m src.train <overrides> hydra.run.dir=RUN_DIR``, adding
-``ckpt_path=RUN_DIR/checkpoints/last.ckpt`` once the folder holds one, and records itself in
+Each call runs ``python -m src.train <overrides> hydra.run.dir=RUN_DIR ckpt_path=last`` (the folder's
+``last.ckpt`` once it holds one; a run stopped before its first is set aside and started again), records itself in
 ``RUN_DIR/chain.json`` (the overrides; per call its start, the steps it reached and how it ended). A folder
 started with other overrides is refused. Exit status: 0 once the run is done (a later call says so and runs
 nothing), :data:`RESUMABLE` (75) when it stopped at a time limit with its progress in ``last.ckpt`` (run the
@@ -87,8 +87,7 @@ class Chain:
 
     def command(self) -> list[str]:
         """The ``src.train`` command of the next call."""
-        resume = [f"ckpt_path={self.last}"] if self.last.is_file() else []
-        return [*self.trainer, *self.overrides, f"hydra.run.dir={self.run_dir}", *resume]
+        return [*self.trainer, *self.overrides, f"hydra.run.dir={self.run_dir}", "ckpt_path=last"]
 
     def record(self) -> dict[str, Any]:
         """``chain.json`` (a new record for a folder without one); refuses a folder of other overrides."""

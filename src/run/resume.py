@@ -2,15 +2,17 @@
 
 * ``ckpt_path=last`` resumes the run dir's own ``checkpoints/last.ckpt`` (with ``hydra.run.dir=<run dir>``,
   or every job of a multirun with ``hydra.sweep.dir=<sweep dir>``); a run dir without one starts at step 0 (one
-  line says so), and a run that already trained its ``max_steps`` and was tested (its ``metrics.json``) is left
-  as it is. A run resumed in its own folder keeps its checkpoints' tracking (the best checkpoint and its score),
-  which Lightning drops when the checkpoint folder changed.
+  line says so; the logs and checkpoints of a run stopped there before its first ``last.ckpt`` are moved into
+  ``stopped_before_checkpoint_<n>/`` in it), and a run that already trained its ``max_steps`` and was tested
+  (its ``metrics.json``) is left as it is. A run resumed in its own folder keeps its checkpoints' tracking (the
+  best checkpoint and its score), which Lightning drops when the checkpoint folder changed.
 * :func:`resume_command` is the exact command that does it for the running Hydra job, printed when a signal
   stops a run (:mod:`src.run.signals`, :mod:`src.run.failures`).
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import re
@@ -23,6 +25,8 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+
+from src.utils.files import disk_errors
 
 log = logging.getLogger(__name__)
 
@@ -61,15 +65,37 @@ def finished_record(cfg: DictConfig) -> Path | None:
     return record if steps is not None and max_steps is not None and 0 < max_steps <= steps else None
 
 
+#: What a run stopped before its first ``last.ckpt`` leaves in its folder, moved aside by ``ckpt_path=last``.
+STOPPED_RUN_FILES = ("csv", "checkpoints")
+#: The folder (in the run dir, numbered) they are moved into.
+STOPPED_BEFORE_CHECKPOINT = "stopped_before_checkpoint"
+
+
 def resolve_ckpt_path(cfg: DictConfig) -> str | None:
-    """``cfg.ckpt_path`` with ``last`` resolved to the run dir's own ``last.ckpt`` (None when it has none)."""
+    """``cfg.ckpt_path`` with ``last`` resolved to the run dir's own ``last.ckpt``; None when it has none: the run
+    starts at step 0, and what a run stopped there before its first ``last.ckpt`` left is moved aside (kept, out of
+    the new run's logs), so that the folder takes the new run."""
     if cfg.get("ckpt_path") != LAST:
         return cfg.get("ckpt_path")
-    last = own_last_checkpoint(Path(cfg.output_dir))
+    run_dir = Path(cfg.output_dir)
+    last = own_last_checkpoint(run_dir)
     if last.is_file():
         return str(last)
-    log.info("ckpt_path=last: no %s yet, training starts at step 0", last)
+    moved = _set_aside(run_dir)
+    kept = f"; the stopped run's {', '.join(p.name for p in moved)} moved to {moved[0].parent}" if moved else ""
+    log.info("ckpt_path=last: no %s yet (no checkpoint was written), training starts at step 0%s", last, kept)
     return None
+
+
+def _set_aside(run_dir: Path) -> list[Path]:
+    """Move the :data:`STOPPED_RUN_FILES` in ``run_dir`` into a new ``stopped_before_checkpoint_<n>``; their paths."""
+    found = [run_dir / name for name in STOPPED_RUN_FILES if (run_dir / name).exists()]
+    if not found:
+        return []
+    folder = next(f for n in itertools.count(1) if not (f := run_dir / f"{STOPPED_BEFORE_CHECKPOINT}_{n}").exists())
+    with disk_errors("moving aside a run stopped before its first checkpoint", run_dir):
+        folder.mkdir()
+        return [path.rename(folder / path.name) for path in found]
 
 
 @contextmanager

@@ -1,7 +1,7 @@
 """One training run per run folder: a second training given the folder of another (``hydra.run.dir`` or
 ``output_dir``) is refused before it writes anything, instead of mixing its checkpoints, logs and metrics
 with the first run's (the first run's final state would be lost). Resuming the run in its own folder
-(``hydra.run.dir=<run dir> ckpt_path=<run dir>/checkpoints/last.ckpt``) is the one way back in.
+(``hydra.run.dir=<run dir> ckpt_path=last``) is the one way back in.
 """
 
 from __future__ import annotations
@@ -30,4 +30,4 @@ def refuse_reused_run_dir(cfg: DictConfig) -> None:
         return
     raise ConfigError(f"{folder} already holds a run ({', '.join(found)}): a second training there would mix its files "
                       f"with that run's; give a new folder (hydra.run.dir=...), or resume that run with "
-                      f"ckpt_path={own_last}")
+                      f"hydra.run.dir={folder} ckpt_path=last")

@@ -1,5 +1,5 @@
 """A stand-in for ``python -m src.train`` in the chain's tests (``python -m tests.helpers.fake_trainer KEY=VALUE ...``):
-it "trains" ``steps=N`` steps of ``step_s=S`` seconds in ``hydra.run.dir``, continuing the step of ``ckpt_path``,
+it "trains" ``steps=N`` steps of ``step_s=S`` seconds in ``hydra.run.dir``, continuing the step of ``ckpt_path`` (``last``: the folder's ``last.ckpt`` when there is one),
 and on SIGTERM writes ``checkpoints/last.ckpt`` at the end of the step and exits 143, as src.train does;
 ``fail=1`` exits 1 at once. Each call appends its arguments to ``calls.txt`` in the run folder."""
 
@@ -30,7 +30,8 @@ def main(argv: list[str]) -> int:
     (run / "config_resolved.yaml").write_text(f"trainer:\n  max_steps: {steps}\n")
     stop: list[bool] = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
-    step = _torch().load(args["ckpt_path"], weights_only=False)["global_step"] if "ckpt_path" in args else 0
+    checkpoint = run / "checkpoints" / "last.ckpt" if args.get("ckpt_path") == "last" else args.get("ckpt_path")
+    step = _torch().load(checkpoint, weights_only=False)["global_step"] if checkpoint and Path(checkpoint).is_file() else 0
     (run / "training").touch()
     while step < steps and not stop:
         time.sleep(float(args.get("step_s", "0.05")))

@@ -3,9 +3,11 @@
 ``serve({path: route})`` is a context manager yielding ``(base_url, requests)``: ``requests`` records
 ``(method, path, Range header)`` of every request. Routes:
 
-* :class:`File` serves bytes (honours ``Range``; ``ranges=False`` ignores it), ``drop_after=N`` sends the
-  full ``Content-Length`` but closes the connection after N bytes on the first request only,
-  ``truncate_to=N`` serves the first N bytes as if they were the whole file;
+* :class:`File` serves bytes (honours ``Range``; ``ranges=False`` ignores it) with an ``ETag`` (the data's
+  sha256; ``etag=False``: none) and honours ``If-Range`` (another ETag: the whole file; ``if_range=False``
+  ignores it), ``drop_after=N`` sends the full ``Content-Length`` but closes the connection after N bytes on
+  the first request only, ``truncate_to=N`` serves the first N bytes as if they were the whole file,
+  ``trickle=S`` sends one byte every S seconds (a host that keeps the connection open but sends almost nothing);
 * :class:`Redirect` answers 302 to another path; a path without a route answers 404;
 * :class:`HubFile` answers like the HuggingFace Hub's ``resolve`` endpoint (``X-Repo-Commit``, ``ETag``
   on ``HEAD``; ``GET`` as :class:`File`).
@@ -19,6 +21,7 @@ import hashlib
 import re
 import socket
 import threading
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -31,6 +34,9 @@ class File:
     ranges: bool = True
     drop_after: int | None = None
     truncate_to: int | None = None
+    etag: bool = True
+    if_range: bool = True
+    trickle: float | None = None
 
 
 @dataclass
@@ -69,7 +75,11 @@ def _handler(routes: Mapping[str, object], requests: list) -> type[BaseHTTPReque
 
         def _file(self, path: str, route: File, head: bool) -> None:
             data = route.data[: route.truncate_to] if route.truncate_to is not None else route.data
+            etag = f'"{hashlib.sha256(data).hexdigest()}"'
             match = re.fullmatch(r"bytes=(\d+)-", self.headers.get("Range") or "")
+            if_range = self.headers.get("If-Range")
+            if route.if_range and if_range is not None and (not route.etag or if_range != etag):  # another version
+                match = None
             start = int(match[1]) if match and route.ranges else 0
             if match and route.ranges and start >= len(data):
                 self.send_error(416)
@@ -79,12 +89,16 @@ def _handler(routes: Mapping[str, object], requests: list) -> type[BaseHTTPReque
                 self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
             if isinstance(route, HubFile):
                 self.send_header("X-Repo-Commit", route.commit)
-                self.send_header("ETag", f'"{hashlib.sha256(data).hexdigest()}"')
+            if route.etag:
+                self.send_header("ETag", etag)
             self.send_header("Content-Length", str(len(data) - start))
             self.end_headers()
             if head:
                 return
             body = data[start:]
+            if route.trickle is not None:
+                self._trickle(body, route.trickle)
+                return
             if route.drop_after is not None and path not in dropped:
                 dropped.add(path)
                 self.wfile.write(body[: route.drop_after])
@@ -93,6 +107,15 @@ def _handler(routes: Mapping[str, object], requests: list) -> type[BaseHTTPReque
                 self.connection.shutdown(socket.SHUT_RDWR)
                 return
             self.wfile.write(body)
+
+        def _trickle(self, body: bytes, every: float) -> None:
+            for k in range(len(body)):
+                try:
+                    self.wfile.write(body[k : k + 1])
+                    self.wfile.flush()
+                except OSError:  # the client gave up
+                    return
+                time.sleep(every)
 
         def log_message(self, *args):
             pass

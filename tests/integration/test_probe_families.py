@@ -5,6 +5,7 @@ that would train nothing, a second training in a run folder, and one line instea
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -102,7 +103,8 @@ def test_a_second_training_in_a_run_folder_is_refused_and_its_own_resume_is_not(
     run, _ = trained
     before = sorted(p.name for p in run.rglob("*"))
     with pytest.raises(ConfigError, match=r"already holds a run \(csv, checkpoints, metrics.json\): "
-                                          r"a second training there would mix"):
+                                          r"a second training there would mix.* resume that run with "
+                                          rf"hydra.run.dir={re.escape(str(run))} ckpt_path=last$"):
         train(_config(trained, run, "trainer.max_steps=1"))
     assert sorted(p.name for p in run.rglob("*")) == before
     refuse_reused_run_dir(_config(trained, run, f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"))

@@ -256,3 +256,40 @@ def test_pending_cells_share_one_call_per_method_up_to_pairs_per_call():
     calls = grid_run._calls(cells, 120)
     assert [[c.digest for c in call] for call in calls] == [["0", "1"], ["2"], ["x"]]
     assert len(grid_run._calls(cells, None)) == 2
+
+
+def _edit_summary(path: Path, edit) -> None:
+    summary = json.loads(path.read_text())
+    edit(summary)
+    path.write_text(json.dumps(summary, indent=2))
+
+
+def _edit_pairs(path: Path) -> None:
+    frame = pd.read_parquet(path)
+    frame["Error(R)"] = 0.0  # a better number, rewritten as a valid parquet file
+    frame.to_parquet(path, index=False)
+
+
+@pytest.mark.parametrize(("change", "problem"), [
+    (lambda cell: _edit_summary(cell.with_suffix(".json"), lambda s: s["metrics"].update({"Error(R)": 0.0})),
+     "{json} was changed after it was written (its numbers do not match the checksum written with them)"),
+    (lambda cell: _edit_pairs(cell.with_suffix(".parquet")),
+     "{parquet} was changed after it was written (its sha256 is not the one {json} records)"),
+    (lambda cell: _edit_summary(cell.with_suffix(".json"), lambda s: s.pop("checksum")),
+     "{json} cannot be verified (written without a checksum, by an earlier version)"),
+], ids=["summary_edited", "pairs_rewritten", "no_checksum"])
+def test_a_cell_whose_files_do_not_prove_intact_is_recomputed(tmp_path, cache_root, capsys, change, problem):
+    """A finished cell's file changed after it was written was reused, its number ranked."""
+    cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]")
+    first = grid_run.run_grid(cfg)
+    cell = next((tmp_path / "out" / "cells").glob("*.json")).with_suffix("")
+    change(cell)
+    capsys.readouterr()
+    second = grid_run.run_grid(cfg)
+    assert (second.computed, second.reused) == (1, 0)
+    shown = problem.format(json=cell.with_suffix(".json").name, parquet=cell.with_suffix(".parquet").name)
+    assert capsys.readouterr().err.splitlines() == [
+        f"warning: cell toy/unseen_shapes/ts/rpmnet: {shown}; recomputing it"]
+    timing = ["seconds", "seconds_per_pair"]
+    pd.testing.assert_frame_equal(first.tidy.drop(columns=timing), second.tidy.drop(columns=timing))
+    assert (grid_run.run_grid(cfg).computed, capsys.readouterr().err) == (0, "")  # the recomputed cell proves intact

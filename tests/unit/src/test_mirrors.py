@@ -47,8 +47,10 @@ def _sha(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def _host_lines(text: str) -> list[str]:
-    """The lines logged per host tried (``<address>: <what happened>``)."""
+def _host_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
+    """The warnings logged per host tried (``<address>: <what happened>``); the info lines (what was downloaded or
+    kept) are not among them."""
+    text = "\n".join(r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING)
     return [m[0] for m in re.finditer(r"http://127\.0\.0\.1:\d+/\S+: [^\n]+", text)]
 
 
@@ -72,7 +74,7 @@ def test_bad_hosts_are_skipped_one_line_each(archives, mirrors_file, tmp_path, c
     assert download_archive(RESAMPLED, tmp_path / "downloads") == path  # the hosts are gone: verified, not fetched
     assert sorted(p.name for p in (tmp_path / "downloads").iterdir()) == ["moved.zip"]
     assert [r[1] for r in requests] == ["/404.zip", "/short.zip", "/wrong.zip", "/h5.zip", "/moved.zip", "/good.zip"]
-    lines = [r.getMessage() for r in caplog.records]
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(lines) == 5 and all(line.startswith("http://127.0.0.1:") for line in lines)
     for line, what in zip(lines, ["cannot connect", "HTTP 404 Not Found", "not a readable archive of the dataset",
                                   "checksum mismatch", "it holds the pointnet_h5 layout, not pointnet2_resampled"]):
@@ -122,14 +124,14 @@ def test_download_through_the_mirror_list_end_to_end(archives, mirrors_file, tmp
         assert main(["modelnet40_resampled", "--download", "--cache-root", str(tmp_path / "c")]) == 0
     assert requests[-1] == ("GET", "/mirror/resampled.zip", "bytes=1000-")  # interrupted, then resumed
     assert open_cache(tmp_path / "c" / "modelnet40_resampled").available_splits == ["train", "test"]
-    assert [line.split(": ", 1)[1] for line in _host_lines(caplog.text)] == ["HTTP 404 Not Found"]
+    assert [line.split(": ", 1)[1] for line in _host_lines(caplog)] == ["HTTP 404 Not Found"]
 
 
 def test_no_host_answers_end_to_end(mirrors_file, tmp_path, capsys, caplog):
     with serve({}) as (url, _):
         mirrors_file({"pointnet2_resampled": [{"url": dead_url("/r.zip")}, {"url": f"{url}/r.zip"}]})
         assert main(["modelnet40_resampled", "--download", "--cache-root", str(tmp_path / "c")]) == 2
-    assert len(_host_lines(caplog.text)) == 2
+    assert len(_host_lines(caplog)) == 2
     captured = capsys.readouterr()
     assert captured.err.count("\n") == 1 and captured.err.startswith("error: no host served r.zip intact (2 tried")
 
@@ -177,3 +179,70 @@ def test_the_records_huggingface_mirror_through_its_endpoint(h5_dir, make_zip, t
         assert main(["modelnet40", "--download", "pointnet_h5", "--cache-root", str(tmp_path / "c")]) == 0
     assert (tmp_path / "c" / "downloads" / "modelnet40_ply_hdf5_2048.zip").read_bytes() == data
     assert open_cache(tmp_path / "c" / "modelnet40").manifest["source_layout"] == "pointnet_h5"
+
+
+def test_an_archive_without_a_published_checksum_is_verified_against_its_first_download(
+        archives, resampled_dir, make_zip, mirrors_file, tmp_path, caplog):
+    """No host publishes a checksum of PointNet's h5 archive: the first good download's sha256 is recorded, said in
+    one line; the archive kept is then verified against it (a partial one is downloaded again), and so are later
+    downloads (another version of the archive is refused)."""
+    good, downloads = archives["zip"], tmp_path / "downloads"
+    routes = {"/r.zip": File(good)}
+    with serve(routes) as (url, requests), caplog.at_level(logging.INFO, logger="src.data.mirrors"):
+        mirrors_file({"pointnet2_resampled": [{"url": f"{url}/r.zip"}]})
+        assert download_archive(RESAMPLED, downloads) == downloads / "r.zip"
+        record = downloads / "r.zip.sha256"
+        assert record.read_text() == f"{_sha(good)}  r.zip\n"  # as sha256sum writes it: `sha256sum -c` checks it
+        assert caplog.messages[-2:] == [
+            f"{url}/r.zip: no checksum of r.zip is published; the sha256 of this download, {_sha(good)}, is recorded "
+            f"in {record}, and later downloads of it are verified against it",
+            f"downloaded {downloads / 'r.zip'} from {url}/r.zip: 5 shapes (train 3, test 2)"]
+
+        caplog.clear()
+        assert download_archive(RESAMPLED, downloads) == downloads / "r.zip" and len(requests) == 1  # kept
+        assert caplog.messages == [f"using {downloads / 'r.zip'}, kept from an earlier download (sha256 as recorded "
+                                   f"at its first download, in {record}): 5 shapes (train 3, test 2)"]
+
+        (downloads / "r.zip").write_bytes(good[: len(good) // 2])  # a partial copy in its place
+        caplog.clear()
+        assert download_archive(RESAMPLED, downloads).read_bytes() == good and len(requests) == 2
+        assert caplog.messages[0] == (f"{downloads / 'r.zip'}: checksum mismatch: expected sha256:{_sha(good)}; "
+                                      "deleted: downloading it again")
+
+        (resampled_dir / "airplane" / "airplane_0001.txt").write_text("0,0,0,0,0,1\n1,0,0,0,0,1\n0,1,0,0,0,1\n")
+        routes["/r.zip"] = File(make_zip(resampled_dir).read_bytes())  # the host's file changed
+        (downloads / "r.zip").unlink()
+        caplog.clear()
+        with pytest.raises(DatasetError, match=r"^no host served r\.zip intact"):
+            download_archive(RESAMPLED, downloads)
+    assert caplog.messages[0] == (f"{url}/r.zip: checksum mismatch: expected sha256:{_sha(good)}; the transfer is "
+                                  f"deleted (the sha256 recorded at its first download, in {record}: delete that file "
+                                  "to accept another version of the archive)")
+    assert sorted(p.name for p in downloads.iterdir()) == ["r.zip.sha256"]
+
+
+def test_an_archive_kept_that_nothing_can_verify_is_refused_in_one_line(archives, mirrors_file, tmp_path, capsys):
+    """A file in downloads/ of which no checksum is published and none was recorded (copied there by hand, or
+    downloaded by an earlier version): refused, left as it is, and the hosts are not asked."""
+    kept = tmp_path / "c" / "downloads" / "r.zip"
+    kept.parent.mkdir(parents=True)
+    kept.write_bytes(archives["zip"])
+    with serve({"/r.zip": File(archives["zip"])}) as (url, requests):
+        mirrors_file({"pointnet2_resampled": [{"url": f"{url}/r.zip"}]})
+        assert main(["modelnet40_resampled", "--download", "--cache-root", str(tmp_path / "c")]) == 2
+    assert requests == [] and kept.read_bytes() == archives["zip"]
+    err = capsys.readouterr().err
+    assert err == (f"error: {kept} is in the downloads folder, but no checksum of it is published and none was recorded "
+                   "when it was downloaded, so it cannot be verified (it may be partial or another file): delete it to "
+                   f"download it again, or pass it as --source {kept} to use it as it is\n")
+
+
+def test_an_archive_kept_with_a_published_checksum_says_what_it_gives(archives, mirrors_file, tmp_path, caplog):
+    good = archives["zip"]
+    (tmp_path / "downloads").mkdir()
+    (tmp_path / "downloads" / "r.zip").write_bytes(good)
+    mirrors_file({"pointnet2_resampled": [{"url": dead_url("/r.zip"), "md5": hashlib.md5(good).hexdigest()}]})
+    with caplog.at_level(logging.INFO, logger="src.data.mirrors"):
+        assert download_archive(RESAMPLED, tmp_path / "downloads") == tmp_path / "downloads" / "r.zip"
+    assert caplog.messages == [f"using {tmp_path / 'downloads' / 'r.zip'}, kept from an earlier download (md5 as "
+                               "published): 5 shapes (train 3, test 2)"]

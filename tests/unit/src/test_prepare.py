@@ -1,7 +1,11 @@
 import json
 import logging
+import os
 import re
+import signal
+import subprocess
 import sys
+import time
 import types
 from pathlib import Path
 
@@ -9,11 +13,12 @@ import numpy as np
 import pytest
 
 from src.data import cache as cache_module
-from src.data.cache import open_cache
+from src.data.cache import REQUIRED_FIELDS, CacheWriter, open_cache
 from src.data.mesh import MeshShape
 from src.data.prepare import build_synthetic_cache, ensure_cache, main, prepare
 from src.utils.errors import ConfigError, DatasetError
 from src.utils.paths import shared_path
+from tests.helpers.paths import ROOT
 
 AIRPLANE_ZIP = shared_path("data", "modelnet40_normal_resampled_airplane.zip")
 
@@ -377,3 +382,95 @@ def test_an_up_to_date_cache_is_said_once_per_process(princeton_dir, tmp_path, i
     for _ in range(3):
         prepare("modelnet40", **args)
     assert info_logs.text.count("cache up to date") == 1
+
+
+# A build whose two pool workers each work on a shape that takes 10 minutes, as `prepare --workers 2` does.
+_SLOW_BUILD = """
+import sys
+from pathlib import Path
+from src.data.cache import REQUIRED_FIELDS, CacheWriter
+from src.data.prepare import _shape_mapper
+from src.utils.errors import exit_code_of
+from tests.helpers.slow_shapes import SlowReader, as_loaded
+
+folder = Path(sys.argv[1])
+
+def build():
+    with CacheWriter(folder / "cache" / "slow", dict.fromkeys(REQUIRED_FIELDS, "")), \\
+            _shape_mapper(SlowReader(folder / "pids"), as_loaded, {}, workers=2) as map_tasks:
+        list(map_tasks([(i, 600) for i in range(8)]))
+
+sys.exit(exit_code_of(build))
+"""
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` still runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _default_signals() -> None:
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_DFL)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize(("signum", "status"), [(signal.SIGKILL, -signal.SIGKILL), (signal.SIGTERM, -signal.SIGTERM),
+                                                (signal.SIGINT, 128 + signal.SIGINT)], ids=["kill", "term", "int"])
+def test_a_stopped_build_leaves_no_worker_and_the_next_build_removes_its_folder(tmp_path, caplog, signum, status):
+    """Its workers outlived a `prepare --workers 2` stopped by kill -9 or SIGTERM, for good, and so did its temporary
+    folder (168 MB for the airplanes). Ctrl+C (SIGINT) cleans up at once; the others' folder goes at the next build."""
+    caplog.set_level(logging.INFO, logger="src.data.cache")
+    (tmp_path / "pids").mkdir()
+    # the build starts as from a shell, with every signal's default action: a child inherits the signals its parent
+    # ignores, and the test process may ignore SIGINT after another test's libraries
+    process = subprocess.Popen([sys.executable, "-c", _SLOW_BUILD, str(tmp_path)], cwd=ROOT, stderr=subprocess.PIPE,
+                               text=True, preexec_fn=_default_signals)
+    deadline = time.monotonic() + 120
+    while len(list((tmp_path / "pids").iterdir())) < 2 and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    workers = [int(p.name) for p in (tmp_path / "pids").iterdir()]
+    assert len(workers) == 2 and all(map(_running, workers)), process.stderr.read() if process.poll() else workers
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == status, stderr
+    deadline = time.monotonic() + 10
+    while any(map(_running, workers)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(map(_running, workers))
+    left = list((tmp_path / "cache").glob(".slow.tmp-*"))
+    assert len(left) == (signum != signal.SIGINT)
+    if signum == signal.SIGINT:
+        assert stderr.strip().splitlines()[-1] == "error: interrupted by SIGINT"
+    CacheWriter(tmp_path / "cache" / "slow", dict.fromkeys(REQUIRED_FIELDS, "")).abort()  # the next build
+    assert list((tmp_path / "cache").iterdir()) == []
+    removed = [m for m in caplog.messages if m.startswith("removed")]
+    assert removed == ([f"removed 1 folder(s) left by an interrupted build of {tmp_path / 'cache' / 'slow'}: "
+                        f"{left[0].name}"] if left else [])
+
+
+def test_only_the_folders_of_writers_that_no_longer_run_are_removed(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    for owner in (int(dead.stdout), os.getpid()):
+        (tmp_path / f".slow.tmp-{owner}-abc").mkdir()
+        (tmp_path / f".slow.old-{owner}-abc").mkdir()
+    (tmp_path / ".other.tmp-1-abc").mkdir()  # another cache's
+    CacheWriter(tmp_path / "slow", dict.fromkeys(REQUIRED_FIELDS, "")).abort()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        ".other.tmp-1-abc", f".slow.old-{os.getpid()}-abc", f".slow.tmp-{os.getpid()}-abc"]
+
+
+@pytest.mark.parametrize("make", [os.mkfifo, lambda path: path.symlink_to(path.parent / "absent.txt")],
+                         ids=["fifo", "dangling_link"])
+def test_a_shape_file_that_is_no_regular_file_is_refused(resampled_dir, tmp_path, capsys, make):
+    """A FIFO among the shape files blocked `prepare` for good (reading it waits for a writer)."""
+    shape = resampled_dir / "chair" / "chair_0001.txt"
+    shape.unlink()
+    make(shape)
+    kind = "a FIFO" if shape.is_fifo() else "a link to nothing"
+    assert main(["modelnet40_resampled", "--source", str(resampled_dir), "--cache-root", str(tmp_path / "c")]) == 2
+    assert capsys.readouterr().err == (f"error: source {resampled_dir}: chair/chair_0001.txt is {kind}, not a regular "
+                                       "file: remove it from the folder\n")
