@@ -15,7 +15,9 @@ metrics); ``demo.pairs=all`` takes them all. On those pairs it evaluates, throug
 grid's), the methods of ``conf/benchmark/demo.yaml`` (identity, ICP, FGR), the shipped checkpoint
 (``checkpoints/*.json``: :func:`~src.models.pretrained.find_shipped`'s for the run's experiment, else
 the card closest to it, evaluated here whatever it was trained for and labelled so) and the run's own
-best checkpoint; the identity is always its first row. A run whose model does not beat the identity's
+best checkpoint; the identity is always its first row. Every row is evaluated in float32, as the run's own test
+is (:mod:`src.run.precision`): where a learned row was trained in another precision (the run's config, the shipped
+card's ``training.precision``), a note says what each trained in. A run whose model does not beat the identity's
 Error(R) (a few CPU minutes of training do not) is labelled a pipeline check, with what a useful run
 needs: the shipped model's steps, batch, CPU-hours and validation curve, from its card. It prints a
 compact table (Error(R), Error(t), RMSE(R), ms/pair; units and "lower is better" in the header) and writes
@@ -48,6 +50,7 @@ from benchmarks.tables.paper import EXPERIMENT_LABELS, canonical_experiment
 from src.compose import compose_experiment
 from src.metrics import ERROR_R, ERROR_T, RMSE_R
 from src.pair_sets import LOADER_KEYS
+from src.run.precision import FP32
 from src.run.resume import best_checkpoint
 from src.utils.errors import CheckpointError, ConfigError, exit_code_of
 from src.utils.paths import CONF_DIR, SHIPPED_DIR
@@ -365,13 +368,22 @@ def demo_table(tidy: Any, run: Run, notes: Sequence[str]) -> tables.Table:
                         f"tab:{TABLE_NAME}", list(notes), header_units=True)
 
 
+def precision_note(trained: dict[str, str]) -> str | None:
+    """The note of a table whose learned rows (label -> the precision it trained in) were not all trained in
+    float32; None when they were."""
+    if set(trained.values()) <= {FP32}:
+        return None
+    return ("precision: every row is evaluated in float32 (32-true); the learned rows were trained in "
+            + ", ".join(f"{precision} ({label})" for label, precision in trained.items()))
+
+
 def _notes(run: Run, shipped_note: str, cells: Sequence[dict[str, Any]], tested: bool,
-           check: str | None) -> list[str]:
-    """What the table's reader must know: what the run's row is, the shipped row, the pairs, the data,
-    failures, the times."""
+           check: str | None, precision: str | None) -> list[str]:
+    """What the table's reader must know: what the run's row is, the shipped row, the precisions, the pairs, the
+    data, failures, the times."""
     import torch
 
-    notes = [*([check] if check else []), shipped_note]
+    notes = [*([check] if check else []), shipped_note, *([precision] if precision else [])]
     used, total = cells[0]["n_pairs"], cells[0]["definition"]["test_set"]["num_test_pairs"]
     if used < total:
         which = ", those the run was tested on" if tested else ""
@@ -397,6 +409,7 @@ def write_tables(table: tables.Table, run_dir: Path) -> list[Path]:
 
 def run_demo(run_dir: Path, overrides: Sequence[str] = (), shipped_dir: Path | None = None) -> list[Path]:
     """The demo for the run in ``run_dir``: evaluate, print, write; returns the files written."""
+    from src.models.pretrained import trained_precision
 
     run = load_run(run_dir)
     cfg = grid_config(run, overrides)
@@ -413,7 +426,10 @@ def run_demo(run_dir: Path, overrides: Sequence[str] = (), shipped_dir: Path | N
     tidy, cells = compare(run, [*classical, *([shipped] if shipped else []), mine], cfg)
     card = shipped_card(run, directory) if shipped else None
     check = pipeline_check_note(tidy, mine, run, None if card is None else card[1])
-    table = demo_table(tidy, run, _notes(run, shipped_note, cells, tested, check))
+    trained = {mine.label: str(run.cfg.trainer.precision)}
+    if shipped is not None and card is not None:
+        trained[shipped.label] = trained_precision(card[1])
+    table = demo_table(tidy, run, _notes(run, shipped_note, cells, tested, check, precision_note(trained)))
     written = write_tables(table, run.path)
     print("\n" + written[0].read_text())
     print(f"wrote {written[0]} and {written[1]} (the grid's files: {run.path / 'demo'}/)\n"

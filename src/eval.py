@@ -6,6 +6,9 @@
     python -m src.eval -m +sweep=overlap ckpt_path=...    # overlap ratio 1.0 -> 0.1 (docs/sweeps.md)
     python -m src.eval model=dcp +exp=dcp_protocol data=modelnet40 weights=official:dcp_v1   # published weights
 
+In float32 unless ``trainer.precision=...`` is given (``trainer.precision=bf16-mixed``: bf16 autocast), whatever
+precision trained the checkpoint; ``metrics.json`` records ``test_precision``.
+
 ``weights`` (instead of ``ckpt_path``): ``official:<name>`` or a file of a known layout, imported into the
 configured model's network class by the function ``weights_importer`` names
 (``baselines.learned.published.published_module``: the network's settings come from the weights' registry
@@ -14,6 +17,7 @@ entry; the metric convention from the experiment).
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 from pathlib import Path
@@ -24,15 +28,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.config import register_resolvers
 from src.models.module import RegistrationModule
-from src.models.pretrained import find_shipped
+from src.models.pretrained import find_shipped, trained_precision
 from src.run.batch_limits import refuse_empty_limits
 from src.run.checkpoint_io import (
     check_checkpoint,
     read_checkpoint,
     read_checkpoint_network,
 )
-from src.run.evaluated import evaluated_record
+from src.run.evaluated import checkpoint_weights, evaluated_record
 from src.run.failures import job_main
+from src.run.memory import refuse_beyond_memory
 from src.run.precision import settle_precision
 from src.run.recorded import refuse_unread_overrides, refuse_unused_in_eval
 from src.run.reporting import report_test_metrics, save_resolved_config
@@ -59,7 +64,9 @@ def resolve_checkpoint(cfg: DictConfig) -> str:
         return str(cfg.ckpt_path)
     identity = {"task": cfg.task_name, "dataset": cfg.data.dataset, "sampling": cfg.sampling, "partial": cfg.partial}
     path = find_shipped(identity, network=cfg.model.network._target_)
-    log.info("no ckpt_path given: evaluating the shipped checkpoint %s (see %s)", path, path.with_suffix(".json").name)
+    card = json.loads(path.with_suffix(".json").read_text())
+    log.info("no ckpt_path given: evaluating the shipped checkpoint %s (trained in %s; see %s)", path,
+             trained_precision(card), path.with_suffix(".json").name)
     return str(path)
 
 
@@ -86,17 +93,21 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     refuse_unread_overrides(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # a network that samples at test (PRNet) repeats
     module, ckpt_path = load_module(cfg)
-    precision = settle_precision(cfg)
+    precision = settle_precision(cfg, evaluation=True)  # float32 unless trainer.precision is given
     save_resolved_config(cfg)
     datamodule = hydra.utils.instantiate(cfg.data)
     datamodule.setup("test")
     refuse_empty_limits(cfg, datamodule, ("test",))
-    overlap = {"test_overlap_checked": False} if cfg.get("weights") else refuse_test_overlap(
-        read_checkpoint(ckpt_path), ckpt_path, datamodule)
+    checkpoint = None if cfg.get("weights") else read_checkpoint(ckpt_path)
+    overlap = {"test_overlap_checked": False} if checkpoint is None else refuse_test_overlap(checkpoint, ckpt_path,
+                                                                                              datamodule)
+    tested = f"{ckpt_path} (published weights)" if checkpoint is None else checkpoint_weights(ckpt_path, checkpoint)
     trainer = build_trainer(cfg, with_checkpoints=False, precision=precision)
+    refuse_beyond_memory(module.network, datamodule, trainer, ("test",))
     trainer.test(module, datamodule=datamodule, verbose=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, ckpt_path, **evaluated_record(trainer), **overlap)
+    report_test_metrics(trainer, cfg, metrics, ckpt_path, tested, test_precision=trainer.precision,
+                        **evaluated_record(trainer), **overlap)
     return metrics
 
 

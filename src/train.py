@@ -33,10 +33,11 @@ from omegaconf import DictConfig
 from src.config import register_resolvers
 from src.run.batch_limits import refuse_empty_limits
 from src.run.checkpoint_io import check_checkpoint, read_checkpoint
-from src.run.evaluated import evaluated_record
+from src.run.evaluated import evaluated_record, trained_weights
 from src.run.failures import job_main
 from src.run.info import require_prepared_paper_data
-from src.run.precision import settle_precision
+from src.run.memory import refuse_beyond_memory
+from src.run.precision import settle_precision, switch_to_fp32
 from src.run.recorded import (
     refuse_resume_past_budget,
     refuse_unread_overrides,
@@ -106,7 +107,8 @@ def require_training_steps(trainer: L.Trainer, cfg: DictConfig) -> None:
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
-    """Fit, then test the best checkpoint; returns the test metrics (empty if testing is off)."""
+    """Fit, then test the best checkpoint in float32 (metrics.json: ``trained_precision``, ``test_precision``);
+    returns the test metrics (empty if testing is off)."""
     refuse_unused_in_train(cfg)
     refuse_unread_overrides(cfg)
     require_prepared_paper_data(cfg)
@@ -133,6 +135,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if cfg.test_after_fit:
         datamodule.setup("test")
     refuse_empty_limits(cfg, datamodule, ("train", "val", "test"))
+    refuse_beyond_memory(module.network, datamodule, trainer, ("train", "val", "test"))
     start = time.perf_counter()
     with resuming_in_place(cfg.ckpt_path, cfg.output_dir):
         # weights_only=False: check_checkpoint has read the whole file already; checkpoints of earlier releases
@@ -143,11 +146,13 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if not cfg.test_after_fit:
         return {}
     best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+    switch_to_fp32(trainer, module)  # the checkpoint's numbers, as src.eval and the grid compute them
     trainer.test(module, datamodule=datamodule, ckpt_path=best or None, verbose=False, weights_only=False)
     metrics = module.test_results
-    report_test_metrics(trainer, cfg, metrics, best, fit_seconds=round(fit_seconds, 1),
+    report_test_metrics(trainer, cfg, metrics, best, trained_weights(trainer, best), fit_seconds=round(fit_seconds, 1),
                         global_step=trainer.global_step, resumed_from=cfg.ckpt_path,
-                        initialised_from=cfg.init_weights, **evaluated_record(trainer))
+                        initialised_from=cfg.init_weights, trained_precision=precision.precision,
+                        test_precision=trainer.precision, **evaluated_record(trainer))
     return metrics
 
 

@@ -6,7 +6,8 @@
 Input: tidy frames (parquet or CSV) with columns ``method, experiment, sampling, partial, metric,
 value`` and optionally ``source`` (several inputs are concatenated), or multirun dirs (collected on
 the fly with :mod:`benchmarks.collect`). Cells with several rows (seeds, repeated runs) show their
-mean. A method given by several ``source`` values gets one row per source.
+mean. A method given by several ``source`` values gets one row per source. A file's cell that should hold a number
+and does not (``1.2 deg``) is refused naming its row and column (:func:`numbers_checked`; ``NaN`` stays NaN).
 
 Layouts (rows: methods in the paper's order, :func:`baselines.methods.paper_rank`, after the identity, a
 reference that is never ranked; best of ours per column in bold, second underlined; every header names
@@ -49,6 +50,8 @@ from benchmarks.tables.paper import (
     method_key,
 )
 from src.metrics import CHAMFER, ERROR_R, MAE_R, MODIFIED_CHAMFER, PAPER_METRICS, RMSE_R, SCORE, SUCCESS_NAMES
+from src.utils.errors import UserError
+from src.utils.files import read_parquet, refuse_unwritable_outputs
 
 HIGHER_IS_BETTER = SUCCESS_NAMES
 REQUIRED = ("method", "experiment", "sampling", "metric", "value")
@@ -154,12 +157,39 @@ def read_inputs(paths: Sequence[str | Path]) -> pd.DataFrame:
 
             frames.append(collect(path).tidy)
         elif path.suffix == ".parquet":
-            frames.append(pd.read_parquet(path))
+            frames.append(numbers_checked(read_parquet(path), path))  # its page checksums verified: a damaged file is one line
         elif path.suffix in (".csv", ".tsv"):
-            frames.append(pd.read_csv(path, sep="\t" if path.suffix == ".tsv" else ","))
+            frames.append(numbers_checked(pd.read_csv(path, sep="\t" if path.suffix == ".tsv" else ","), path))
         else:
             raise ValueError(f"{path}: expected a .parquet/.csv frame or a multirun directory")
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=list(REQUIRED))
+
+
+#: The columns of a tidy frame that hold numbers (``aggregate`` averages ``value`` and compares the others).
+NUMERIC_COLUMNS = ("value", "noise_sigma", "overlap_ratio", "num_iters")
+
+
+def _is_number(value: object) -> bool:
+    try:
+        float(value)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def numbers_checked(frame: pd.DataFrame, path: Path) -> pd.DataFrame:
+    """``frame`` with its :data:`NUMERIC_COLUMNS` as numbers (NaN stays NaN: a run without the number); ValueError
+    naming the file, the row (1 = the first under the header, and its method, experiment, sampling, metric) and the
+    column of the first cell that is not a number."""
+    for column in (c for c in NUMERIC_COLUMNS if c in frame.columns):
+        bad = [i for i, v in enumerate(frame[column]) if not pd.isna(v) and not _is_number(v)]
+        if bad:
+            row = frame.iloc[bad[0]]
+            label = ", ".join(f"{k} {row[k]}" for k in ("method", "experiment", "sampling", "metric") if k in frame.columns)
+            raise ValueError(f"{path}: row {bad[0] + 1} ({label}), column {column}: {row[column]!r} is not a number; "
+                             "write the number, or NaN for a run that gave none")
+        frame[column] = pd.to_numeric(frame[column])
+    return frame
 
 
 def normalise(frame: pd.DataFrame) -> pd.DataFrame:
@@ -494,18 +524,20 @@ def main(argv: list[str] | None = None) -> int:
               "apt-get install texlive-latex-recommended), or leave out --compile", file=sys.stderr)
         return 2
     args.out = args.out or default_out(args.inputs[0])
+    name = args.name or args.layout
     try:
+        refuse_unwritable_outputs(args.out, [name + end for end in (".tex", ".md", "_standalone.tex", "_standalone.pdf")],
+                                  "--out")
         frame = read_inputs(args.inputs)
         paper = load_paper_tables(args.paper_dir) if args.paper else None
         table = build_table(frame, args.layout, [m.strip() for m in args.metrics.split(",") if m.strip()], paper,
                             any_dataset=args.paper_any_dataset,
                             experiments=args.experiments.split(",") if args.experiments else None, caption=args.caption)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, UserError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     from benchmarks.tables.latex_check import check_latex, compile_latex
 
-    name = args.name or args.layout
     args.out.mkdir(parents=True, exist_ok=True)
     tex, markdown = to_latex(table), to_markdown(table)
     (args.out / f"{name}.tex").write_text(tex)

@@ -428,6 +428,22 @@ class OMNet(nn.Module):
         reference point: the same in every iteration, only the masks change."""
         return (torch.cdist(se3_apply(_full(transform_gt), _full(src)), _full(ref)) < self.overlap_dist).to(_full(src).dtype)
 
+    def step_bytes(self, batch: int, n: int, m: int, training: bool) -> int:
+        """A lower bound of the memory a forward pass on ``batch`` pairs of ``n`` and ``m`` points with the ground
+        truth holds (its point budget, :mod:`src.run.memory`): the (B,N,M) close pairs (float32, made from a bool
+        matrix while the distances or the float32 copy exist: 5 bytes a pair at the peak, 4 kept) and, in training,
+        one float32 output per point-wise layer and iteration, kept for the backward pass (the reference's encoder
+        outputs once, as with shared weights)."""
+        pairs = batch * n * m if self.mask_module else 0
+        if not training:
+            return 5 * pairs
+        block = self.block(0)
+        width = {name: sum(layer.linear.out_features for layer in getattr(block, name, None) or ())
+                 for name in ("encoder", "fusion", "decoder")}
+        later = width["fusion"] + width["decoder"]
+        outputs = self.num_iters * (n * (width["encoder"] + later) + m * later) + m * width["encoder"]
+        return 4 * pairs + 4 * batch * outputs
+
     @torch.no_grad()
     def _labels(self, close: Tensor, mask_src: Tensor | None, mask_ref: Tensor | None) -> tuple[Tensor, Tensor]:
         if mask_src is None:

@@ -30,6 +30,9 @@ from src.run.trained_on import KEY as TRAINED_ON
 from src.utils.errors import CheckpointError
 from src.utils.paths import SHIPPED_DIR, without_folder
 
+#: :func:`trained_precision` of a card that does not record its training precision.
+UNRECORDED = "unrecorded"
+
 
 def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR, network: str | None = None) -> Path:
     """The shipped checkpoint trained for ``identity`` (task, dataset, sampling, partial) and, when given, for
@@ -47,6 +50,12 @@ def find_shipped(identity: dict[str, str], directory: Path = SHIPPED_DIR, networ
         f"no shipped checkpoint for {describe(identity, network)} (shipped: {'; '.join(available) or 'none'}): "
         "train one with `python -m src.train` and pass ckpt_path=PATH"
     )
+
+
+def trained_precision(card: dict[str, Any]) -> str:
+    """The precision the card's checkpoint was trained in (Lightning's name, ``training.precision``: every shipped
+    card records it), :data:`UNRECORDED` for a card without it. Evaluation runs in float32 whatever it is."""
+    return str(card.get("training", {}).get("precision") or UNRECORDED)
 
 
 def verify_card(ckpt: Path, card: dict[str, Any]) -> Path:
@@ -138,7 +147,7 @@ def export(run_dir: Path, name: str, out_dir: Path = SHIPPED_DIR, evaluations: d
             "resumed_from": results.get("resumed_from"),
             "batch_size": config["data"]["batch_size"],
             "optimizer": {k: hyper_parameters[k] for k in ("lr", "weight_decay", "scheduler")},
-            "precision": config["trainer"]["precision"],
+            "precision": config["trainer"]["precision"],  # as the run settled it (src/run/precision.py)
             "accelerator": config["trainer"]["accelerator"],
             "seed": config["seed"],
             "command": None if _overrides(run_dir) is None else " ".join(["python -m src.train", *_overrides(run_dir)]),

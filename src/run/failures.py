@@ -23,7 +23,7 @@ from omegaconf import DictConfig
 from src.run.cli import hydra_command
 from src.run.distributed import distributed_job_scope, global_rank
 from src.run.resume import resume_command
-from src.utils.errors import ConfigError, Interrupted, UserError, user_error_behind
+from src.utils.errors import ConfigError, DiskError, Interrupted, UserError, user_error_behind
 from src.utils.files import disk_errors, write_text_atomic
 from src.utils.interrupts import interruptible
 from src.utils.paths import REPO_ROOT
@@ -128,7 +128,8 @@ def record_failures(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig],
             try:
                 path: Path | str = write_failure(output_dir, err)
             except UserError as problem:  # e.g. the disk that stopped the job is full: report the job's error
-                log.error("failure.json not written: %s", problem)
+                if not isinstance(err, DiskError):  # (a job stopped by its folder's disk says so in its own line)
+                    log.error("failure.json not written: %s", problem)
                 path = f"nowhere ({problem})"
             if mode == "raise" or isinstance(err, Interrupted):
                 raise

@@ -5,7 +5,8 @@
   before anything is built, in one line naming both ways forward: prepare it, or the embedded synthetic
   data with a CPU-sized recipe.
 * :class:`TrainingForecast` (``conf/callbacks/default.yaml``): one line when training starts (the data
-  and whether it is synthetic, the model's size, steps x batch, the device, the precision and why, the run dir), and after the
+  and whether it is synthetic, the model's size, steps x batch, the device, the precision and why: the verdict used
+  and where it was measured, or that there is none, :mod:`src.run.precision`; the run dir), and after the
   first ``after_steps`` optimiser steps the measured seconds per step and the time of the rest on this
   machine; a schedule of more than ``long_hours`` on a CPU also says how to choose a CPU-sized one.
 """

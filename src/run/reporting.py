@@ -47,20 +47,22 @@ def write_metrics(metrics: dict[str, float], output_dir: Path, context: dict[str
 
 
 def report_test_metrics(
-    trainer: L.Trainer, cfg: DictConfig, metrics: dict[str, float], checkpoint: str, **extra: Any
+    trainer: L.Trainer, cfg: DictConfig, metrics: dict[str, float], checkpoint: str, tested_weights: str, **extra: Any
 ) -> None:
     """On rank 0 (under DDP every rank holds the same synchronised metrics): write metrics.json/.csv
-    into the run dir (``extra`` joins the context, e.g. training time) and print the table."""
+    into the run dir (``extra`` joins the context, e.g. training time) and print the table, under which weights were
+    tested (``tested_weights``: :mod:`src.run.evaluated`)."""
     refuse_non_finite_metrics(metrics, cfg.data.dataset)
     if not trainer.is_global_zero:
         return
-    context = {"task": cfg.task_name, "checkpoint": checkpoint, "sampling": cfg.sampling, "partial": cfg.partial,
-               "dataset": cfg.data.dataset, **extra}
+    context = {"task": cfg.task_name, "checkpoint": checkpoint, "tested_weights": tested_weights, "sampling": cfg.sampling,
+               "partial": cfg.partial, "dataset": cfg.data.dataset, **extra}
     write_metrics(metrics, Path(cfg.output_dir), context)
     log_card(trainer, {**context, "metrics": metrics})
     tested = describe_evaluated(extra) if "test_pairs" in extra else f"{cfg.data.dataset} data"
     print(f"\nTest metrics ({cfg.task_name} protocol, {cfg.sampling}, {cfg.partial}; {tested}; Error(R) in degrees, "
-          f"lower is better):\n{format_metrics(metrics)}\nwrote {Path(cfg.output_dir) / 'metrics.json'} and metrics.csv")
+          f"lower is better):\nweights: {tested_weights}\n{format_metrics(metrics)}\n"
+          f"wrote {Path(cfg.output_dir) / 'metrics.json'} and metrics.csv")
 
 
 def refuse_non_finite_metrics(metrics: dict[str, float], dataset: str) -> None:

@@ -50,7 +50,8 @@ def build_trainer(cfg: DictConfig, with_checkpoints: bool = True, precision: Pre
         callbacks.append(StepProgressBar())  # Epoch N, no v_num, a resumed epoch's true total (src/run/progress.py)
     patch_ddp_subprocess_launcher()
     precision = precision or settle_precision(cfg)
-    trainer = hydra.utils.instantiate(cfg.trainer, precision=precision.precision, logger=loggers, callbacks=callbacks,
-                                      plugins=[AtomicCheckpointIO()])
+    # plain dicts and lists (_convert_): Lightning takes +trainer.max_time={minutes: 5} as a dict, not as a DictConfig
+    trainer = hydra.utils.instantiate(cfg.trainer, _convert_="partial", precision=precision.precision, logger=loggers,
+                                      callbacks=callbacks, plugins=[AtomicCheckpointIO()])
     trainer.precision_choice = precision  # for the start line (src/run/info.py)
     return trainer

@@ -19,6 +19,7 @@ from benchmarks.demo import (
     main,
     own_test_pairs,
     pipeline_check_note,
+    precision_note,
     run_demo,
 )
 from benchmarks.tables.latex_check import check_latex, tabular_rows, tabulars
@@ -32,9 +33,13 @@ from tests.helpers.registration_helpers import TINY, compose_config, tiny_config
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
+    """A 2-step run trained in bf16-mixed, forced: trainer.precision=auto trains in bf16 on some CPU kinds and in
+    float32 on others, so the comparisons below (the demo's rows, src.eval, the run's own test: all in float32)
+    hold on every CPU only if they hold for a bf16-trained run (here bf16 is emulated: slower, same numbers)."""
     tmp = tmp_path_factory.mktemp("demo")
     train(tiny_config(tmp, "+exp=unseen_shapes", "trainer.max_steps=2", "trainer.val_check_interval=1",
-                      "trainer.check_val_every_n_epoch=null", "trainer.limit_val_batches=1", "trainer.limit_test_batches=1"))
+                      "trainer.check_val_every_n_epoch=null", "trainer.limit_val_batches=1", "trainer.limit_test_batches=1",
+                      "trainer.precision=bf16-mixed", "force_precision=true"))
     return tmp / "run"
 
 
@@ -76,10 +81,15 @@ def test_demo_compares_five_methods_on_the_runs_own_test_pairs(run_dir, tmp_path
     assert "trained for task=unseen_categories" in md and "synthetic data" in md
     assert "Lower is better" in md
 
-    # the run's own row repeats the run's own test (its first batch of 2 pairs): the same test set
-    expected = json.loads((run_dir / "metrics.json").read_text())["metrics"]
+    # the run's own row repeats the run's own test (its first batch of 2 pairs): the same test set, and the same
+    # float32 computation although the run trained in bf16
+    results = json.loads((run_dir / "metrics.json").read_text())
+    expected = results["metrics"]
     assert float(rows[mine][0]) == pytest.approx(expected["Error(R)"], abs=1e-3)
     assert float(rows[mine][1]) == pytest.approx(expected["Error(t)"], abs=1e-4)
+    assert (results["trained_precision"], results["test_precision"]) == ("bf16-mixed", "32-true")
+    assert (f"precision: every row is evaluated in float32 (32-true); the learned rows were trained in bf16-mixed "
+            f"({mine}), bf16-mixed ({shipped_row})") in md
     # the same weights shipped: the same numbers
     assert rows[shipped_row][:3] == rows[mine][:3]
     out = capsys.readouterr().out
@@ -100,6 +110,14 @@ def test_without_a_shipped_checkpoint_its_row_is_left_out_with_a_note(run_dir, t
     mine = next(values for label, values in rows.items() if label.startswith("OMNet"))
     assert float(mine[0]) == pytest.approx(expected["Error(R)"], abs=1e-3)
     assert float(mine[2]) == pytest.approx(expected["RMSE(R)"], abs=1e-3)
+    assert json.loads((run_dir.parent / "eval" / "metrics.json").read_text())["test_precision"] == "32-true"
+
+
+def test_a_table_says_when_its_models_were_not_all_trained_in_float32():
+    assert precision_note({"A (this run)": "32-true", "A (shipped)": "32-true"}) is None
+    assert precision_note({"A (this run)": "bf16-mixed", "A (shipped)": "unrecorded"}) == (
+        "precision: every row is evaluated in float32 (32-true); the learned rows were trained in bf16-mixed "
+        "(A (this run)), unrecorded (A (shipped))")
 
 
 def test_data_overrides_recompose_the_runs_test_set(tmp_path):

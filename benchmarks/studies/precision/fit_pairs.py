@@ -20,7 +20,9 @@ import argparse
 import csv
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -31,19 +33,32 @@ PROTOCOL = ["+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noi
             "data.persistent_workers=false", "data.pin_memory=false"]
 
 
-def fixed_pairs(method: str, pairs: int, points: int, keep: int) -> dict[str, torch.Tensor]:
-    """The first ``pairs`` training pairs of the real airplanes, stacked (normals for a network that reads them)."""
+def protocol(points: int, keep: int) -> list[str]:
+    """The overrides of the real-airplane pairs: :data:`PROTOCOL`, ``points`` per cloud cropped to ``keep``."""
+    return [*PROTOCOL, f"data.pair.num_points={points}", f"data.pair.prnet_num_keep={keep}"]
+
+
+def datamodule(method: str, overrides: Sequence[str]) -> Any:
+    """The datamodule of ``overrides`` for ``method`` (normals cached for a network that reads them), set up to fit."""
     import hydra
 
     from src.compose import compose_conf
 
     normals = ["data.normals=cache"] if _uses_normals(method) else []
-    cfg = compose_conf([*PROTOCOL, f"model={method}", f"data.pair.num_points={points}",
-                        f"data.pair.prnet_num_keep={keep}", *normals])
-    datamodule = hydra.utils.instantiate(cfg.data)
-    datamodule.setup("fit")
-    items = [datamodule.datasets["train"][i] for i in range(pairs)]
+    data = hydra.utils.instantiate(compose_conf([*overrides, f"model={method}", *normals]).data)
+    data.setup("fit")
+    return data
+
+
+def stacked(items: Sequence[dict[str, Any]]) -> dict[str, torch.Tensor]:
+    """Pairs of a dataset as one batch (their tensors stacked)."""
     return {k: torch.stack([item[k] for item in items]) for k in items[0] if torch.is_tensor(items[0][k])}
+
+
+def fixed_pairs(method: str, pairs: int, overrides: Sequence[str]) -> dict[str, torch.Tensor]:
+    """The first ``pairs`` training pairs of ``overrides``' data, stacked (normals for a network that reads them)."""
+    train = datamodule(method, overrides).datasets["train"]
+    return stacked([train[i] for i in range(pairs)])
 
 
 def _uses_normals(method: str) -> bool:
@@ -108,7 +123,7 @@ def run(args: argparse.Namespace) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     path = out / "fits.csv"
     done = _done(path)
-    batch = fixed_pairs(args.method, args.pairs, args.points, args.keep)
+    batch = fixed_pairs(args.method, args.pairs, protocol(args.points, args.keep))
     for seed in (int(s) for s in args.seeds.split(",")):
         for precision in precisions:
             modules = args.fp32_modules if precision == "bf16" else []

@@ -1,5 +1,6 @@
 """The precision table from ``fit_pairs``' ``fits.csv`` files: per method and recorded step, float32 and bf16
-Error(R) over the seeds, the gap, the seed-to-seed spread, and the verdict.
+Error(R) over the seeds, the gap, the seed-to-seed spread, and the early-step verdict (the history of
+``benchmarks/results/precision.md``; ``trainer.precision=auto``'s verdicts come from ``time_to_accuracy.py``).
 
     python -m benchmarks.studies.precision.report RUN/fits.csv [RUN2/fits.csv ...] [--out table.md]
 
