@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -239,11 +240,16 @@ class Registrator(ABC):
         :attr:`planar_blind`; methods add what they need (more points, normals)."""
         refuse_planar(self.name, self.planar_blind, src=src, ref=ref)
 
-    def _register_conditioned(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        """:meth:`_register` of a checked pair conditioned (:func:`~baselines.conditioning.condition`: each point
-        once, in :meth:`frame`, within the point budget) and found able to determine the rotation."""
+    def _conditioned(self, src: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, Callable]:
+        """A checked pair conditioned (:func:`~baselines.conditioning.condition`: each point once, in :meth:`frame`,
+        within the point budget) and found able to determine the rotation, with the ``undo`` of its estimate."""
         src, ref, undo = condition(src, ref, frame=self.frame, budget=self.point_budget)
         self._refuse_undetermined(src, ref)
+        return src, ref, undo
+
+    def _register_conditioned(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """:meth:`_register` of a checked pair, :meth:`_conditioned`."""
+        src, ref, undo = self._conditioned(src, ref)
         return undo(_as_transform(self._register(src, ref)))
 
     def __repr__(self) -> str:

@@ -46,7 +46,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from baselines.base import Registrator, RegistratorConfig, refuse_planar, require_points
-from baselines.conditioning import Similarity, TrainingFrame, condition
+from baselines.conditioning import Similarity, TrainingFrame
 from baselines.methods import Method, get_method, learned_methods, method_of_network
 from baselines.result import FIT_THRESHOLD, RegistrationResult
 from src.compose import compose_model_config
@@ -333,9 +333,7 @@ class LearnedRegistrator(Registrator):
     def _register_batch(self, src: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """Each pair conditioned as :meth:`register` does and checked, then all through the network in one forward
         pass (pair by pair where repeated points left them of different sizes), each estimate mapped back."""
-        pairs = [condition(s, r, frame=self.frame, budget=self.point_budget) for s, r in zip(src, ref)]
-        for s, r, _ in pairs:
-            self._refuse_undetermined(s, r)
+        pairs = [self._conditioned(s, r) for s, r in zip(src, ref)]
         if len({(len(s), len(r)) for s, r, _ in pairs}) == 1:
             estimates = self._forward(np.stack([s for s, _, _ in pairs]), np.stack([r for _, r, _ in pairs]))
         else:
