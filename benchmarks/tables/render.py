@@ -56,14 +56,27 @@ from src.utils.files import read_parquet, refuse_unwritable_outputs
 HIGHER_IS_BETTER = SUCCESS_NAMES
 REQUIRED = ("method", "experiment", "sampling", "metric", "value")
 LAYOUTS = ("table1", "table2", "table3")
+#: The paper's experiments in the order of its sub-tables (a), (b), (c), (d) (Tables 1 and 2 of the paper).
+PAPER_EXPERIMENTS = ("unseen_shapes", "unseen_categories", "unseen_shapes_noise", "unseen_categories_noise")
 #: The paper's experiments in its order, each followed by our real-data experiments that stand in for it.
-EXPERIMENT_ORDER = tuple(e for paper in ("unseen_shapes", "unseen_categories", "unseen_shapes_noise", "unseen_categories_noise")
+EXPERIMENT_ORDER = tuple(e for paper in PAPER_EXPERIMENTS
                          for e in (paper, *(ours for ours, cell in PAPER_COUNTERPARTS.items() if cell == paper)))
 ABLATION_ORDER = ("B", "B+M", "B+M+ML", "B+M+ML+F", "B+M+ML+F+C")
 MISSING = "--"
 #: The method every table shows as a reference row, never ranked.
 REFERENCE = "identity"
 NOT_A_NUMBER = "NaN"  # a method that ran and gave NaN: never shown as MISSING (not run), and its column is not ranked
+
+
+def _sub_table_letters(experiments: list[str], partials: list[str]):
+    """The sub-table letter of each block: the paper's ((a) unseen shapes, (b) unseen categories, (c) and (d) the
+    same with noise) where the blocks are the paper's experiments in one partial manner, so that a table of
+    (b) alone is still labelled (b); otherwise (a), (b), ... in order."""
+    paper = [PAPER_COUNTERPARTS.get(e, e) for e in experiments]
+    if len(partials) == 1 and len(set(paper)) == len(paper) and all(e in PAPER_EXPERIMENTS for e in paper):
+        return lambda experiment: "abcd"[PAPER_EXPERIMENTS.index(PAPER_COUNTERPARTS.get(experiment, experiment))]
+    letters = iter("abcdefghijklmnopqrstuvwxyz")
+    return lambda experiment: next(letters)
 
 
 # --- the intermediate table ---------------------------------------------------------------------
@@ -299,7 +312,7 @@ def build_table(
     experiments_present = list(dict.fromkeys(cells["experiment"]))
     order = [e for e in EXPERIMENT_ORDER if e in experiments_present] + sorted(e for e in experiments_present if e not in EXPERIMENT_ORDER)
     blocks = []
-    letters = iter("abcdefghijklmnopqrstuvwxyz")
+    letter = _sub_table_letters(order, partials)
     for partial in partials:
         for experiment in order:
             part = cells[(cells["partial"] == partial) & (cells["experiment"] == experiment)]
@@ -327,7 +340,7 @@ def build_table(
             if len(partials) > 1 or partial != "prnet":
                 label += f", {'RPMNet' if partial == 'rpmnet' else 'PRNet'} manner"
             if layout == "table1" or len(order) > 1 or len(partials) > 1:
-                label = f"({next(letters)}) {label}"
+                label = f"({letter(experiment)}) {label}"
                 blocks.append(Block(label, rows))
             else:
                 blocks.append(Block(None, rows))

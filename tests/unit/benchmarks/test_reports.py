@@ -90,7 +90,7 @@ def test_paper_values_only_for_the_papers_protocol(paper_dir):
 def test_table1_layout_ranks_and_paper_rows(paper_dir):
     frame = _frame(["OMNet", "ICP", "DCP"], experiments=("unseen_shapes", "gaussian_noise"))
     table = build_table(frame, "table1", paper=load_paper_tables(paper_dir))
-    assert [b.label for b in table.blocks] == ["(a) Unseen shapes", "(b) Gaussian noise (unseen shapes)"]
+    assert [b.label for b in table.blocks] == ["(a) Unseen shapes", "(c) Gaussian noise (unseen shapes)"]  # the paper's
     labels = [r.label for r in table.blocks[0].rows]
     assert labels == ["ICP", "paper", "ours/paper", "DCP", "OMNet", "paper", "ours/paper"]  # paper order, OMNet last
     omnet, icp = table.blocks[0].rows[4], table.blocks[0].rows[0]
@@ -259,6 +259,13 @@ def test_the_categories_plot_gives_each_methods_error_per_shape_category(tmp_pat
         assert int(row["pairs"]) == sum(own) and float(row["ICP"]) == pytest.approx(icp[own].mean(), abs=0.006)
     assert int(table.set_index("Category").loc["all", "pairs"]) == 12
     assert (tmp_path / "out" / "unseen_categories_ts_prnet_by_category.png").stat().st_size > 10_000
+
+
+def test_sub_tables_keep_the_papers_letters_unless_they_are_not_the_papers_experiments(paper_dir):
+    alone = build_table(_frame(["ICP"], experiments=("unseen_categories",)), "table1", paper=load_paper_tables(paper_dir))
+    assert [b.label for b in alone.blocks] == ["(b) Unseen categories"]  # Table 1(b) alone is still (b)
+    other = build_table(_frame(["ICP"], experiments=("unseen_shapes", "axisymmetric_z_rotation")), "table1")
+    assert [b.label for b in other.blocks] == ["(a) Unseen shapes", "(b) Axisymmetric categories, z rotations"]
 
 
 def test_real_data_table_in_the_papers_order_with_its_caption(paper_dir):
