@@ -106,6 +106,15 @@ class Cache:
     def available_splits(self) -> list[str]:
         return list(self.manifest["splits"])
 
+    def category_counts(self, name: str) -> dict[str, int]:
+        """Shapes per category of split ``name``: of the built split, or, for a split the source withheld, the
+        counts its manifest records (``missing_splits.<name>.by_category``)."""
+        missing = self.manifest.get("missing_splits", {}).get(name)
+        if missing is not None:
+            return {category: int(entry["missing"]) for category, entry in missing.get("by_category", {}).items()}
+        labels, counts = np.unique(np.asarray(self.split(name).labels), return_counts=True)
+        return {self.categories[int(label)]: int(count) for label, count in zip(labels, counts)}
+
     def split(self, name: str) -> CacheSplit:
         """Memory-mapped arrays of a built split; an unbuilt split raises its missing-files message."""
         missing = self.manifest.get("missing_splits", {})

@@ -6,7 +6,7 @@ import difflib
 import functools
 import inspect
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +47,7 @@ def resolve_categories(spec: str | Sequence[str], cache: Cache, remove_axisymmet
     return [c for c in names if not (remove_axisymmetric and c in AXISYMMETRIC_CATEGORIES)]
 
 
-SPEC_KEYS = ("split", "categories", "slice", "carve", "exclude", "repeat", "instead", "when_missing")
+SPEC_KEYS = ("split", "categories", "slice", "carve", "as_many_as", "exclude", "repeat", "instead", "when_missing")
 """What a ``data.splits.<stage>`` entry may hold (:func:`select_shapes`)."""
 
 
@@ -56,7 +56,9 @@ def select_shapes(
 ) -> tuple[str, np.ndarray]:
     """Indices into ``cache.split(spec['split'])`` of the requested categories, then ``spec['carve']``
     (``[seed, start, stop]``: per category, the fractions ``[start, stop)`` of a permutation seeded by ``seed``
-    and the category, e.g. a stratified validation carve-out), then ``spec['slice']`` (``[start, stop]`` as a
+    and the category, e.g. a stratified validation carve-out), then ``spec['as_many_as']`` (``[seed, split]``: per
+    category, a seeded draw of as many shapes as ``split`` has of it, built or withheld, e.g. a stand-in for a
+    withheld test split with its composition), then ``spec['slice']`` (``[start, stop]`` as a
     Python slice over them in split-list order, e.g. ``[-100, null]``), less the shapes of the ``stages``
     that ``spec['exclude']`` names (e.g. ``[val]``: several categories but one category's validation
     carve-out; a stage drawn from another split excludes none), then each repeated ``spec['repeat']`` times
@@ -74,6 +76,8 @@ def select_shapes(
     indices = np.flatnonzero(np.isin(labels, wanted))
     if spec.get("carve") is not None:
         indices = _carve(indices, labels[indices], spec["carve"])
+    if spec.get("as_many_as") is not None:
+        indices = _as_many_as(indices, labels[indices], spec["as_many_as"], cache)
     bounds = spec.get("slice")
     if bounds is not None:
         indices = indices[slice(*(None if b is None else int(b) for b in bounds))]
@@ -134,13 +138,36 @@ def _carve(indices: np.ndarray, labels: np.ndarray, carve: Sequence[Any]) -> np.
     if not ok:
         raise ConfigError(f"data.splits carve={list(carve) if isinstance(carve, Sequence) else carve!r} is invalid: "
                           "give [seed, start, stop] with 0 <= start <= stop <= 1")
+    return _per_category(indices, labels, seed, lambda label, n: slice(int(round(start * n)), int(round(stop * n))))
+
+
+def _per_category(indices: np.ndarray, labels: np.ndarray, seed: int,
+                  part: Callable[[int, int], slice]) -> np.ndarray:
+    """The union over categories of ``part(label, size)`` of each category's permutation seeded by
+    ``[seed, label]``, in split-list order."""
     kept = []
     for label in np.unique(labels):
         members = indices[labels == label]
         order = np.random.default_rng([seed, int(label)]).permutation(len(members))
-        bounds = [int(round(f * len(members))) for f in (start, stop)]
-        kept.append(members[order[bounds[0]:bounds[1]]])
+        kept.append(members[order[part(int(label), len(members))]])
     return np.sort(np.concatenate(kept)) if kept else indices[:0]
+
+
+def _as_many_as(indices: np.ndarray, labels: np.ndarray, as_many_as: Sequence[Any], cache: Cache) -> np.ndarray:
+    """Per category, the first ``n`` of a seeded permutation (``as_many_as = [seed, split]``), ``n`` the number of
+    shapes of that category in ``split`` (:meth:`Cache.category_counts`; all of the category where it has fewer);
+    in split-list order. The seeds are :func:`_carve`'s, so ``as_many_as: [s, test]`` draws from the front of
+    ``carve: [s, ...]``'s permutation."""
+    try:
+        seed, split = int(as_many_as[0]), str(as_many_as[1])
+        ok = len(as_many_as) == 2 and split in (*cache.available_splits, *cache.manifest.get("missing_splits", {}))
+    except (TypeError, ValueError, IndexError, KeyError):
+        ok = False
+    if not ok:
+        raise ConfigError(f"data.splits as_many_as={as_many_as!r} is invalid: give [seed, split] with a split of the "
+                          f"{cache.dataset} cache ({', '.join(cache.available_splits)}) or one it withheld")
+    counts = cache.category_counts(split)
+    return _per_category(indices, labels, seed, lambda label, n: slice(0, counts.get(cache.categories[label], 0)))
 
 
 #: Layouts whose clouds are whole samplings of a shape (``data.pair.num_points`` picks no points there).

@@ -186,6 +186,21 @@ def test_carve_outs_of_one_seed_tile_each_category(npy_dir, tmp_path):
             select_shapes(cache, {"split": "train", "carve": carve}, False)
 
 
+def test_as_many_as_draws_each_category_as_the_withheld_split_holds(npy_dir, tmp_path):
+    cache = prepare("modelnet40_npy", source=npy_dir, cache_root=tmp_path / "cache")
+    split, drawn = select_shapes(cache, {"split": "train", "categories": ["laptop", "sofa"], "as_many_as": [5, "test"]}, True)
+    names = np.asarray(cache.split(split).shape_names)[drawn]
+    assert sorted(n.rsplit("_", 1)[0] for n in names) == ["laptop", "laptop", "sofa", "sofa"]  # 2 withheld of each
+    carved = select_shapes(cache, {"split": "train", "categories": ["laptop", "sofa"], "carve": [5, 0.0, 0.5]}, True)[1]
+    assert set(drawn) <= set(carved)  # the front of the same seeded permutation
+    built = prepare("modelnet40_npy", source=write_npy_archive(tmp_path / "full", test=True), cache_root=tmp_path / "c2")
+    assert len(select_shapes(built, {"split": "train", "categories": ["sofa"], "as_many_as": [5, "test"]}, True)[1]) == 2
+    assert len(select_shapes(built, {"split": "test", "categories": ["sofa"], "as_many_as": [5, "train"]}, True)[1]) == 2
+    for value in ([5], [5, "validation"], "test", ["x", "test"]):
+        with pytest.raises(ConfigError, match="data.splits as_many_as=.* is invalid: give \\[seed, split\\]"):
+            select_shapes(cache, {"split": "train", "as_many_as": value}, False)
+
+
 def test_excluding_a_stage_of_another_split_excludes_no_shape(tmp_path):
     cache = prepare("modelnet40_npy", source=write_npy_archive(tmp_path / "src", test=True), cache_root=tmp_path / "c")
     stages = {"val": {"split": "test", "categories": ["airplane"]}}
