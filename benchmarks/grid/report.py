@@ -29,8 +29,9 @@ def summary_table(tidy, metrics: Sequence[str] = SUMMARY_METRICS) -> str:
         return table.reset_index().to_string(index=False)
 
 
-def write_tables(tidy, output_dir: Path, paper: bool = True) -> list[Path]:
-    """table.md / table.tex in the paper's Table-1 layout via benchmarks.tables (if available)."""
+def write_tables(tidy, output_dir: Path, paper: bool = True, caption: str | None = None) -> list[Path]:
+    """table.md / table.tex in the paper's Table-1 layout via benchmarks.tables (if available), ``caption`` (the
+    grid's own words: data, budget, which model each row is) before the layout's."""
     try:
         from benchmarks.tables import render as tables
     except ImportError:  # pragma: no cover - tables module absent
@@ -44,7 +45,7 @@ def write_tables(tidy, output_dir: Path, paper: bool = True) -> list[Path]:
         except (ImportError, FileNotFoundError):
             paper_frame = None
     try:
-        table = tables.build_table(tidy, "table1", paper=paper_frame)
+        table = tables.build_table(tidy, "table1", paper=paper_frame, caption=caption)
     except ValueError as err:
         print(f"note: no LaTeX/Markdown table ({err})", file=sys.stderr)
         return []
@@ -68,7 +69,8 @@ def report(result: GridResult, cfg: DictConfig) -> None:
               f"{c['n_failed']} of {c['n_pairs']} (counted with the identity): {reasons}")
     for note in result.skipped:
         print(f"note: {note}")
-    written = write_tables(result.tidy, result.output_dir, paper=bool(cfg.get("paper", True)))
+    written = write_tables(result.tidy, result.output_dir, paper=bool(cfg.get("paper", True)),
+                           caption=cfg.benchmark.get("caption"))
     if written:
         print("\n" + written[0].read_text())
     print("wrote " + ", ".join(str(p) for p in [result.output_dir / "results.parquet", result.output_dir / "results.csv",

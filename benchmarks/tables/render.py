@@ -296,6 +296,8 @@ def build_table(
     if not dropped.empty:
         notes.append(f"{len(dropped)} rows of sampling {sorted(dropped['sampling'].unique())} are not part of this layout")
         data = data[data["sampling"].isin(samplings)]
+    if layout == "table1" and data["sampling"].nunique() == 1:  # e.g. data with one sampling a shape: OS only
+        samplings = list(data["sampling"].unique())
     if experiments:
         wanted = [canonical_experiment(e) for e in experiments]
         data = data[data["experiment"].isin(wanted)]
@@ -359,7 +361,8 @@ def build_table(
         for reason, count in reasons.items():
             notes.append(f"no paper value for {count} cells: {reason}")
     titles = {
-        "table1": "Registration errors, OS and TS columns per metric (layout of the paper's Table 1)",
+        "table1": (f"Registration errors, {' and '.join(samplings)} columns per metric (layout of the paper's Table 1"
+                   + ("" if len(samplings) == 2 else f", {samplings[0]} data only") + ")"),
         "table2": "Registration errors on twice-sampled (TS) data (layout of the paper's Table 2)",
         "table3": "Ablation studies on TS data (layout of the paper's Table 3)",
     }

@@ -268,6 +268,14 @@ def test_sub_tables_keep_the_papers_letters_unless_they_are_not_the_papers_exper
     assert [b.label for b in other.blocks] == ["(a) Unseen shapes", "(b) Axisymmetric categories, z rotations"]
 
 
+def test_data_of_one_sampling_gets_its_columns_only(tmp_path):
+    table = build_table(_frame(["ICP"], experiments=("unseen_categories",), samplings=("os",)), "table1", caption="Real shapes, one sampling a shape")
+    assert table.samplings == ["OS"] and len(table.columns) == 6
+    assert table.caption.startswith("Real shapes, one sampling a shape. Registration errors, OS columns per metric "
+                                    "(layout of the paper's Table 1, OS data only)")
+    assert count_columns(tabulars(to_latex(table))[0][0]) == 7
+
+
 def test_real_data_table_in_the_papers_order_with_its_caption(paper_dir):
     frame = _frame(["OMNet"], experiments=("real_unseen_category", "real_airplane_noisy", "real_airplane"),
                    dataset="modelnet40_resampled", noise_sigma=0.0)

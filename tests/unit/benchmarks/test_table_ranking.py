@@ -47,3 +47,9 @@ def test_the_grid_report_tables_state_units_and_keep_the_identity_unranked(tmp_p
     assert all(("↓" in header) for header in frame.columns[1:])
     header = summary_table(_tidy()).splitlines()[0].split()
     assert {"Error(R)", "(°)", "↓", "ms/pair"} <= set(header)
+
+
+def test_the_grid_caption_comes_before_the_layouts_in_both_tables(tmp_path):
+    markdown, latex = (path.read_text() for path in write_tables(_tidy(), tmp_path, paper=False, caption="Real shapes, 1 CPU hour each"))
+    assert markdown.startswith("**Real shapes, 1 CPU hour each. Registration errors")
+    assert "\\caption{Real shapes, 1 CPU hour each. Registration errors" in latex
