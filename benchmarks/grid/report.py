@@ -55,6 +55,25 @@ def write_tables(tidy, output_dir: Path, paper: bool = True, caption: str | None
     return written
 
 
+def write_category_figures(result: GridResult, cfg: DictConfig) -> list[Path]:
+    """For each experiment of ``benchmark.by_category`` that the grid ran, per sampling and partial manner, every
+    method's error per shape category: a figure and a table (:func:`benchmarks.plots.sweep.write_categories`)."""
+    from benchmarks.plots.sweep import write_categories
+    from benchmarks.tables.paper import canonical_experiment
+
+    wanted = {canonical_experiment(e) for e in cfg.benchmark.get("by_category") or ()}
+    cells = result.tidy[["experiment", "sampling", "partial"]].drop_duplicates()
+    absent = sorted(wanted - {canonical_experiment(e) for e in cells["experiment"]})
+    if absent:
+        print(f"note: benchmark.by_category names {', '.join(absent)}, which this grid did not run: no figure for it")
+    written: list[Path] = []
+    for experiment, sampling, partial in cells.itertuples(index=False):
+        if canonical_experiment(experiment) in wanted:
+            written += write_categories(result.output_dir, experiment, sampling.lower(), partial,
+                                        overrides=list(cfg.benchmark.overrides))[1]
+    return written
+
+
 def report(result: GridResult, cfg: DictConfig) -> None:
     print(f"\nComparison grid '{cfg.benchmark.name}': {len(result.cells)} cells "
           f"({result.computed} computed, {result.reused} reused) in {result.output_dir}")
@@ -73,5 +92,6 @@ def report(result: GridResult, cfg: DictConfig) -> None:
                            caption=cfg.benchmark.get("caption"))
     if written:
         print("\n" + written[0].read_text())
+    written += write_category_figures(result, cfg)
     print("wrote " + ", ".join(str(p) for p in [result.output_dir / "results.parquet", result.output_dir / "results.csv",
                                                 result.output_dir / "pairs.parquet", *written]))

@@ -469,21 +469,30 @@ def categories_main(argv: list[str]) -> int:
     parser.add_argument("--partial", default="prnet")
     parser.add_argument("--data", default=None, help="the data config (default: the one the grid's cells ran on)")
     args = parser.parse_args(argv)
-    out = args.out or args.grid_dir
     try:
-        rows = category_rows(args.grid_dir, args.experiment, args.sampling, args.partial, args.data, args.overrides)
+        table, written = write_categories(args.grid_dir, args.experiment, args.sampling, args.partial, args.data,
+                                          args.overrides, args.out)
     except (ValueError, UserError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    print(table)
+    print(f"wrote {', '.join(str(path) for path in written)}")
+    return 0
+
+
+def write_categories(grid_dir: Path, experiment: str, sampling: str, partial: str, data: str | None = None,
+                     overrides: Sequence[str] = (), out: Path | None = None) -> tuple[str, list[Path]]:
+    """``<experiment>_<sampling>_<partial>_by_category.png`` and ``.md`` in ``out`` (default ``grid_dir``): the
+    mean Error(R) of every method of the grid's cells per shape category (:func:`category_rows`); the table and
+    the files written."""
+    out = out or grid_dir
+    rows = category_rows(grid_dir, experiment, sampling, partial, data, overrides)
     table = category_table(rows)
-    stem = f"{args.experiment}_{args.sampling}_{args.partial}_by_category"
+    stem = f"{experiment}_{sampling}_{partial}_by_category"
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{stem}.md").write_text(table)
-    title = f"{args.experiment} ({args.sampling.upper()}, {args.partial}): rotation error per category"
-    png = plot_error_by_category(rows, out / f"{stem}.png", title)
-    print(table)
-    print(f"wrote {png}, {out / f'{stem}.md'}")
-    return 0
+    title = f"{experiment} ({sampling.upper()}, {partial}): rotation error per category"
+    return table, [plot_error_by_category(rows, out / f"{stem}.png", title), out / f"{stem}.md"]
 
 
 def main(argv: list[str] | None = None) -> int:

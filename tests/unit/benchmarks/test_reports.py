@@ -13,6 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from benchmarks.collect import collect
+from benchmarks.grid.report import report
 from benchmarks.grid.run import run_grid
 from benchmarks.tables.latex_check import check_latex, count_columns, tabular_rows, tabulars
 from benchmarks.tables.paper import attach_paper, load_paper_tables, method_key, protocol_mismatch
@@ -244,8 +245,12 @@ def test_the_categories_plot_gives_each_methods_error_per_shape_category(tmp_pat
         cfg = compose("benchmark_grid", overrides=[
             "benchmark.methods=[identity,icp]", "benchmark.experiments=[unseen_categories]", "benchmark.samplings=[ts]",
             "benchmark.partials=[prnet]", "benchmark.max_pairs=12", "workers=0", "progress=false", "paper=false",
-            f"output_dir={tmp_path / 'grid'}"])
-    pairs = run_grid(cfg).pairs
+            "benchmark.by_category=[unseen_categories]", f"output_dir={tmp_path / 'grid'}"])
+    result = run_grid(cfg)
+    pairs = result.pairs
+    report(result, cfg)  # the grid draws it itself for benchmark.by_category
+    by_grid = (tmp_path / "grid" / "unseen_categories_ts_prnet_by_category.md").read_text()
+    capsys.readouterr()
     assert plots_main(["categories", str(tmp_path / "grid"), "--sampling", "ts", "--out", str(tmp_path / "out")]) == 0
     _, table = markdown_table(capsys.readouterr().out, "Error(R), mean (degrees), per category")
     assert table.columns.tolist() == ["Category", "pairs", "Identity (no registration)", "ICP"]
@@ -259,6 +264,8 @@ def test_the_categories_plot_gives_each_methods_error_per_shape_category(tmp_pat
         assert int(row["pairs"]) == sum(own) and float(row["ICP"]) == pytest.approx(icp[own].mean(), abs=0.006)
     assert int(table.set_index("Category").loc["all", "pairs"]) == 12
     assert (tmp_path / "out" / "unseen_categories_ts_prnet_by_category.png").stat().st_size > 10_000
+    assert (tmp_path / "out" / "unseen_categories_ts_prnet_by_category.md").read_text() == by_grid
+    assert (tmp_path / "grid" / "unseen_categories_ts_prnet_by_category.png").is_file()
 
 
 def test_sub_tables_keep_the_papers_letters_unless_they_are_not_the_papers_experiments(paper_dir):
