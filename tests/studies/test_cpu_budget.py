@@ -200,3 +200,25 @@ def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_besid
     curves, table = collect(tmp_path)
     assert list(curves["method"]) == ["omnet_beyond"] and table.loc[0, "test Error(R)"] == 16.0
     assert table.loc[0, "mm GFLOP/s"] == 50.0
+
+
+def test_a_shipped_run_says_what_it_trained_on_how_long_and_from_what(tmp_path):
+    from src.utils.errors import ConfigError
+
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 2.0, "RUNS/omnet_beyond/omnet/checkpoints/best-10.ckpt",
+                                  protocol="gaussian_noise_npy", probe=lambda m, w, b: 2.0)
+    (tmp_path / "omnet_noisy").mkdir()
+    (tmp_path / "omnet_noisy" / "plan.json").write_text(json.dumps(plan))
+    run_dir = tmp_path / "omnet_noisy" / "omnet"
+    _fake_stage(run_dir, [{"step": 9, "time/cpu_hours": 1.0}, {"step": 19, "time/cpu_hours": 1.93}], done=False)
+    best = f"{run_dir}/checkpoints/best-19.ckpt"
+    (run_dir / "metrics.json").write_text(json.dumps({"trained_precision": "32-true", "checkpoint": best,
+                                                     "tested_weights": f"{best} (step 19), selected on val/loss (min)"}))
+    note = cpu_budget.ship_note(tmp_path / "omnet_noisy", "a 2-core test CPU")
+    assert note.startswith(cpu_budget.PROTOCOLS["gaussian_noise_npy"].description + ". Trained by")
+    steps = plan["stages"][0]["max_steps"]
+    assert f"recipe omnet_cpu; omnet: {steps:,} steps x batch 16 at width 0.25, planned for a 2-CPU-hour budget" in note
+    assert "1.93 CPU hours used with validation), starting from best-10.ckpt, one torch thread, 32-true, on a 2-core test CPU" in note
+    assert note.endswith("Weights: best-19.ckpt (step 19), selected on val/loss (min).") and str(tmp_path) not in note
+    with pytest.raises(ConfigError, match="has not finished \\(no done.json\\): run it to the end first"):
+        cpu_budget.ship(tmp_path / "omnet_noisy", "omnet_noisy_test", "a 2-core test CPU")

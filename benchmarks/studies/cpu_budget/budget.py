@@ -11,6 +11,7 @@ inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its 
     python -m benchmarks.studies.cpu_budget.budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2] [--archive DIR]
     python -m benchmarks.studies.cpu_budget.budget beyond --root RUNS --method omnet --recipe omnet_cpu --budget-h 1.5 [--init-weights CKPT]
     python -m benchmarks.studies.cpu_budget.budget archive --root RUNS --out benchmarks/studies/cpu_budget/results/runs
+    python -m benchmarks.studies.cpu_budget.budget ship --root RUNS --folder fmr --name <checkpoint name> --compute TEXT
     python -m benchmarks.studies.cpu_budget.report --root benchmarks/studies/cpu_budget/results/runs --out benchmarks/studies/cpu_budget/results
 
 ``archive`` copies each run's record (plan, commands, CSV logs, test metrics: kilobytes, no checkpoint)
@@ -69,25 +70,35 @@ TRAINING = [
 
 @dataclass(frozen=True)
 class Protocol:
-    """The data a budget trains on: the experiment's overrides, and the classifier stage's (PointNetLK)."""
+    """The data a budget trains on: the experiment's overrides, the classifier stage's (PointNetLK), and what it
+    is in words (the note of a shipped checkpoint)."""
 
     experiment: list[str]
     classifier: list[str]
+    description: str
 
 
 PROTOCOLS = {
     # TS, PRNet manner, clean, real airplanes; the classifier on the synthetic default's categories (the real data
     # has one training category, nothing to classify; bathtubs are the unseen-category test set).
     "real_airplane": Protocol(["+exp=real_airplane", "sampling=ts", "partial=prnet", "data.pair.noise_sigma=0.0"],
-                              ["+exp=unseen_shapes", "data=synthetic"]),
+                              ["+exp=unseen_shapes", "data=synthetic"],
+                              "real ModelNet40 airplanes (+exp=real_airplane), TS, PRNet manner, clean"),
     # Table 1 on the 40 real categories, 1,024 points a shape: OS, PRNet manner, the first half's categories
     # (conf/exp/unseen_categories.yaml: validation on its carve-out, test on the second half); the classifier on
     # the same 14 training categories.
     "unseen_categories_npy": Protocol(["+exp=unseen_categories", "data=modelnet40_npy", "partial=prnet"],
-                                      ["+exp=unseen_categories", "data=modelnet40_npy"]),
+                                      ["+exp=unseen_categories", "data=modelnet40_npy"],
+                                      "Table 1 on the 40 real ModelNet40 categories (data=modelnet40_npy, 1,024 points a "
+                                      "shape): the 3,566 carve-out shapes of the 14 first-half categories, OS, PRNet "
+                                      "manner (717 points kept), clean, selected on the 210 validation carve-out pairs; "
+                                      "one model for Table 1 (a) and (b)"),
     # Table 1 (c): the same with the paper's noise, tested on the unseen-shapes carve-out.
     "gaussian_noise_npy": Protocol(["+exp=gaussian_noise", "data=modelnet40_npy", "partial=prnet"],
-                                   ["+exp=gaussian_noise", "data=modelnet40_npy"]),
+                                   ["+exp=gaussian_noise", "data=modelnet40_npy"],
+                                   "Table 1 (c) on the 40 real ModelNet40 categories (data=modelnet40_npy): the same "
+                                   "shapes and pairs with the paper's noise (sigma 0.01 clipped at 0.05), selected on "
+                                   "the noisy validation pairs"),
 }
 
 
@@ -329,6 +340,37 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
     return archived
 
 
+def ship_note(method_dir: Path, compute: str) -> str:
+    """The note of a shipped checkpoint of the run in ``method_dir``: its protocol, each stage's steps, batch, width
+    and the CPU hours it was planned and used, where it started from, how its weights were chosen, on ``compute``."""
+    from benchmarks.studies.cpu_budget.report import stage_cpu_hours
+
+    plan = json.loads((method_dir / "plan.json").read_text())
+    stages = [Stage(**s) for s in plan["stages"]]
+    parts = [f"{stage.model}: {stage.max_steps:,} steps x batch {stage.batch} at width {stage.width:g}, planned for a "
+             f"{stage.budget_cpu_h:g}-CPU-hour budget from a probe of its step cost, "
+             f"{stage_cpu_hours(method_dir / stage.name):.2f} CPU hours used with validation" for stage in stages]
+    start = next((o.split("=", 1)[1] for o in stages[0].overrides if o.startswith("init_weights=")), None)
+    recipe = f"recipe {plan['beyond']}" if "beyond" in plan else "its authors' recipe on the steps the budget buys"
+    results = json.loads((method_dir / stages[-1].name / "metrics.json").read_text())
+    return (f"{PROTOCOLS[plan['protocol']].description}. Trained by benchmarks/studies/cpu_budget ({recipe}; "
+            f"{'; '.join(parts)}), {'starting from ' + Path(start).name if start else 'from scratch'}, one torch "
+            f"thread, {results['trained_precision']}, on {compute}. Weights: "
+            f"{results['tested_weights'].replace(results['checkpoint'], Path(results['checkpoint']).name)}.")
+
+
+def ship(method_dir: Path, name: str, compute: str) -> Path:
+    """Export the last stage of the finished run in ``method_dir`` as ``checkpoints/<name>`` (float16 weights) with
+    its card and :func:`ship_note`."""
+    from src.models.pretrained import export
+
+    plan = json.loads((method_dir / "plan.json").read_text())
+    run_dir = method_dir / plan["stages"][-1]["name"]
+    if not (run_dir / "done.json").is_file():
+        raise ConfigError(f"{run_dir} has not finished (no done.json): run it to the end first")
+    return export(run_dir, name, note=ship_note(method_dir, compute), half=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.studies.cpu_budget.budget", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -347,9 +389,17 @@ def main(argv: list[str] | None = None) -> int:
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/studies/cpu_budget/results/runs"))
+    shipping = sub.add_parser("ship", help="export a finished run as a shipped checkpoint with its card")
+    shipping.add_argument("--root", type=Path, required=True)
+    shipping.add_argument("--folder", required=True, help="the run's folder under --root (e.g. fmr, omnet_beyond)")
+    shipping.add_argument("--name", required=True, help="checkpoints/<name>.ckpt, e.g. fmr_unseen_categories_modelnet40_npy_os_prnet")
+    shipping.add_argument("--compute", required=True, help="what it trained on, for the card, e.g. '2-core AMD EPYC Zen 3'")
     args = parser.parse_args(argv)
 
     def action() -> None:
+        if args.command == "ship":
+            print(f"wrote {ship(args.root / args.folder, args.name, args.compute)} and its card")
+            return
         if args.command == "archive":
             print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
             return

@@ -31,6 +31,11 @@ def _stage_cpu_hours(logs: pd.DataFrame) -> float:
     return float(logs["time/cpu_hours"].max()) if "time/cpu_hours" in logs else 0.0
 
 
+def stage_cpu_hours(run_dir: Path) -> float:
+    """The CPU hours a stage's run used so far (training and validation: its logs' ``time/cpu_hours``)."""
+    return _stage_cpu_hours(read_csv_logs(run_dir))
+
+
 def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
     """(plan, validation rows of the registration stage: step, cpu_hours (all stages), Error(R), Error(t))."""
     plan = json.loads((method_dir / "plan.json").read_text())
