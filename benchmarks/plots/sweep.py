@@ -45,7 +45,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 
 from baselines.methods import display_name  # noqa: E402
 from benchmarks.tables.paper import attach_paper, canonical_experiment, default_paper_dir, load_paper_tables  # noqa: E402
-from benchmarks.tables.render import HIGHER_IS_BETTER, default_out, read_inputs  # noqa: E402
+from benchmarks.tables.render import HIGHER_IS_BETTER, REFERENCE, default_out, read_inputs  # noqa: E402
 from src.utils.errors import UserError  # noqa: E402
 from src.utils.files import read_parquet  # noqa: E402
 from src.metrics import ERROR_R, ERROR_T, MAE_R, MAE_T, RMSE_R, RMSE_T, SUCCESS_THRESHOLDS  # noqa: E402
@@ -442,16 +442,20 @@ def category_table(rows: pd.DataFrame) -> str:
 
 
 def plot_error_by_category(rows: pd.DataFrame, path: Path, title: str) -> Path:
-    """Each method's mean Error(R) (log scale) per category, the categories in the order of the first method's
-    error, one colour and marker per method."""
+    """Each method's mean Error(R) (log scale) per category, the categories from the easiest to the hardest (the
+    median over the methods that register), one colour and marker per method, the identity a dashed grey line."""
     methods = list(dict.fromkeys(rows["label"]))
     means = rows.pivot_table(index="category", columns="label", values=ERROR_R, aggfunc="mean")[methods]
-    means = means.sort_values(methods[-1])
+    reference = display_name(REFERENCE)
+    registering = [m for m in methods if m != reference] or methods
+    means = means.loc[means[registering].median(axis=1).sort_values().index]
     fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(means) + 2), 4.6))
     markers = "os^vDPX*<>"
-    for i, method in enumerate(methods):
+    for i, method in enumerate(registering):
         ax.plot(range(len(means)), means[method].clip(lower=1e-2), marker=markers[i % len(markers)], lw=1,
                 label=method)
+    if reference in methods:
+        ax.plot(range(len(means)), means[reference], color="0.5", ls="--", lw=1, label=reference)
     ax.set_xticks(range(len(means)), means.index, rotation=60, ha="right", fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("Error(R), mean over the category's pairs (degrees)")
