@@ -441,6 +441,10 @@ def category_table(rows: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: The lowest error the per-category figure draws (a log axis): an exact registration would be off the plot.
+FLOOR = 1e-2
+
+
 def plot_error_by_category(rows: pd.DataFrame, path: Path, title: str) -> Path:
     """Each method's mean Error(R) (log scale) per category, the categories from the easiest to the hardest (the
     median over the methods that register), one colour and marker per method, the identity a dashed grey line."""
@@ -451,14 +455,15 @@ def plot_error_by_category(rows: pd.DataFrame, path: Path, title: str) -> Path:
     means = means.loc[means[registering].median(axis=1).sort_values().index]
     fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(means) + 2), 4.6))
     markers = "os^vDPX*<>"
-    for i, method in enumerate(registering):
-        ax.plot(range(len(means)), means[method].clip(lower=1e-2), marker=markers[i % len(markers)], lw=1,
-                label=method)
+    colours = plt.get_cmap("tab20" if len(registering) > 10 else "tab10")
+    for i, method in enumerate(registering):  # a colour each (up to 20 methods) and a marker each (up to 10)
+        ax.plot(range(len(means)), means[method].clip(lower=FLOOR), marker=markers[i % len(markers)], lw=1,
+                color=colours(i % colours.N), label=method)
     if reference in methods:
         ax.plot(range(len(means)), means[reference], color="0.5", ls="--", lw=1, label=reference)
     ax.set_xticks(range(len(means)), means.index, rotation=60, ha="right", fontsize=8)
     ax.set_yscale("log")
-    ax.set_ylabel("Error(R), mean over the category's pairs (degrees)")
+    ax.set_ylabel(f"Error(R), category mean (°; floored at {FLOOR:g})")
     ax.grid(alpha=0.3, which="both", axis="y")
     ax.legend(fontsize=7, loc="best")
     ax.set_title(title, fontsize=10)

@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
+
 from benchmarks.studies.cpu_budget.recipes import (
     CPU_TRAINING_ENV,
     add_run_parser,
@@ -43,9 +45,15 @@ from benchmarks.studies.cpu_budget.recipes import (
     run_each,
     train_logged,
 )
+from src.run.reporting import read_csv_logs
 from src.run.resume import best_checkpoint, own_last_checkpoint
 from src.utils.errors import ConfigError, exit_code_of
 from src.utils.paths import without_folder
+
+def logged_cpu_hours(logs: pd.DataFrame) -> float:
+    """The CPU hours a run's logs say it used (training and validation: the largest ``time/cpu_hours``)."""
+    return float(logs["time/cpu_hours"].max()) if "time/cpu_hours" in logs else 0.0
+
 
 #: The learned methods of the grid, in the grid's order.
 METHODS = ("omnet", "dcp", "prnet", "rpmnet", "idam", "pointnetlk", "pointnetlk_revisited", "fmr", "deepgmr")
@@ -343,13 +351,12 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
 def ship_note(method_dir: Path, compute: str) -> str:
     """The note of a shipped checkpoint of the run in ``method_dir``: its protocol, each stage's steps, batch, width
     and the CPU hours it was planned and used, where it started from, how its weights were chosen, on ``compute``."""
-    from benchmarks.studies.cpu_budget.report import stage_cpu_hours
 
     plan = json.loads((method_dir / "plan.json").read_text())
     stages = [Stage(**s) for s in plan["stages"]]
     parts = [f"{stage.model}: {stage.max_steps:,} steps x batch {stage.batch} at width {stage.width:g}, planned for a "
              f"{stage.budget_cpu_h:g}-CPU-hour budget from a probe of its step cost, "
-             f"{stage_cpu_hours(method_dir / stage.name):.2f} CPU hours used with validation" for stage in stages]
+             f"{logged_cpu_hours(read_csv_logs(method_dir / stage.name)):.2f} CPU hours used with validation" for stage in stages]
     start = next((o.split("=", 1)[1] for o in stages[0].overrides if o.startswith("init_weights=")), None)
     recipe = f"recipe {plan['beyond']}" if "beyond" in plan else "its authors' recipe on the steps the budget buys"
     results = json.loads((method_dir / stages[-1].name / "metrics.json").read_text())

@@ -17,7 +17,7 @@ from collections.abc import Collection
 
 import pandas as pd
 
-from benchmarks.studies.cpu_budget.budget import Stage, run_folders
+from benchmarks.studies.cpu_budget.budget import Stage, logged_cpu_hours, run_folders
 from src.utils.errors import ConfigError, exit_code_of
 from src.run.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
@@ -25,15 +25,6 @@ from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
 #: The process's torch.mm rate, logged at each validation (src.run.callbacks.TrainingClock): what a CPU hour bought.
 MM_RATE = "time/mm_gflops"
 CURVE_COLUMNS = {"time/cpu_hours": "cpu_hours", VAL_ERROR_R: ERROR_R, VAL_ERROR_T: ERROR_T}
-
-
-def _stage_cpu_hours(logs: pd.DataFrame) -> float:
-    return float(logs["time/cpu_hours"].max()) if "time/cpu_hours" in logs else 0.0
-
-
-def stage_cpu_hours(run_dir: Path) -> float:
-    """The CPU hours a stage's run used so far (training and validation: its logs' ``time/cpu_hours``)."""
-    return _stage_cpu_hours(read_csv_logs(run_dir))
 
 
 def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
@@ -47,7 +38,7 @@ def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
         if VAL_ERROR_R in logs:
             rows = logs.dropna(subset=[VAL_ERROR_R])[["step", *CURVE_COLUMNS]].rename(columns=CURVE_COLUMNS)
             curve = rows.assign(cpu_hours=rows["cpu_hours"] + offset)
-        offset += _stage_cpu_hours(logs)
+        offset += logged_cpu_hours(logs)
     return plan, curve.assign(method=method_dir.name)
 
 
@@ -75,7 +66,7 @@ def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
     steps = [_steps_trained(method_dir / s.name, frame) for s, frame in zip(stages, logs)]
     row = {"method": method_dir.name, "width": plan["width"], "batch": last.batch, "steps": steps[-1],
            "planned steps": last.max_steps, "pairs seen": steps[-1] * last.batch,
-           "CPU h": sum(_stage_cpu_hours(frame) for frame in logs if not frame.empty)}
+           "CPU h": sum(logged_cpu_hours(frame) for frame in logs if not frame.empty)}
     rates = [value for frame in logs if MM_RATE in frame for value in frame[MM_RATE].dropna()]
     row["mm GFLOP/s"] = float(pd.Series(rates).median()) if rates else None  # the machine's speed during the run
     if len(stages) > 1:
