@@ -222,3 +222,28 @@ def test_a_shipped_run_says_what_it_trained_on_how_long_and_from_what(tmp_path):
     assert note.endswith("Weights: best-19.ckpt (step 19), selected on val/loss (min).") and str(tmp_path) not in note
     with pytest.raises(ConfigError, match="has not finished \\(no done.json\\): run it to the end first"):
         cpu_budget.ship(tmp_path / "omnet_noisy", "omnet_noisy_test", "a 2-core test CPU")
+
+
+def test_extend_replans_a_run_whose_probe_overestimated_its_step_to_the_steps_its_budget_buys(tmp_path):
+    from src.utils.errors import ConfigError
+
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 2.0, protocol="unseen_categories_npy", probe=lambda m, w, b: 2.0)
+    planned = plan["stages"][0]["max_steps"]  # 2 h / (2 s x overhead): 3,272 steps
+    (tmp_path / "omnet_beyond").mkdir()
+    (tmp_path / "omnet_beyond" / "plan.json").write_text(json.dumps(plan))
+    run_dir = tmp_path / "omnet_beyond" / "omnet"
+    # the run measured 1.5 CPU s a step: its planned steps used 1.36 of its 2 CPU hours
+    _fake_stage(run_dir, [{"step": planned // 2 - 1, "time/cpu_hours": planned / 2 * 1.5 / 3600},
+                          {"step": planned - 1, "time/cpu_hours": planned * 1.5 / 3600}])
+    assert cpu_budget.main(["extend", "--root", str(tmp_path), "--folder", "omnet_beyond"]) == 0
+    (stage,) = json.loads((tmp_path / "omnet_beyond" / "plan.json").read_text())["stages"]
+    assert stage["max_steps"] == int(2.0 * 3600 / 1.5) and stage["planned_steps"] == planned
+    assert stage["step_cpu_s"] == pytest.approx(1.5) and not (run_dir / "done.json").exists()  # the driver goes on
+    best = f"{run_dir}/checkpoints/best-9.ckpt"
+    (run_dir / "metrics.json").write_text(json.dumps({"trained_precision": "32-true", "checkpoint": best,
+                                                     "tested_weights": f"{best} (step 9), selected on val/score (min)"}))
+    assert (f"{int(2.0 * 3600 / 1.5):,} steps x batch 16 at width 0.25, planned for a 2-CPU-hour budget from a probe of "
+            f"its step cost ({planned:,} steps), then from the step cost the run measured (1.50 CPU s a step)"
+            in cpu_budget.ship_note(tmp_path / "omnet_beyond", "a test CPU"))
+    with pytest.raises(ConfigError, match="planned steps already use its 2 CPU hours at the measured 1.50 CPU s a step"):
+        cpu_budget.extend_plan(tmp_path / "omnet_beyond")  # the steps trained so far: the same measure, nothing to add

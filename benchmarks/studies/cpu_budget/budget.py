@@ -11,8 +11,12 @@ inside PointNetLK's budget. Resumable: ``run`` again resumes every run from its 
     python -m benchmarks.studies.cpu_budget.budget run --root RUNS [--methods omnet,dcp] [--budget-h 1] [--parallel 2] [--archive DIR]
     python -m benchmarks.studies.cpu_budget.budget beyond --root RUNS --method omnet --recipe omnet_cpu --budget-h 1.5 [--init-weights CKPT]
     python -m benchmarks.studies.cpu_budget.budget archive --root RUNS --out benchmarks/studies/cpu_budget/results/runs
+    python -m benchmarks.studies.cpu_budget.budget extend --root RUNS --folder omnet_beyond   # then run it again
     python -m benchmarks.studies.cpu_budget.budget ship --root RUNS --folder fmr --name <checkpoint name> --compute TEXT
     python -m benchmarks.studies.cpu_budget.report --root benchmarks/studies/cpu_budget/results/runs --out benchmarks/studies/cpu_budget/results
+
+``extend`` re-plans a stopped run whose probe over-estimated the step cost (its planned steps leave CPU time of
+its budget unused) to the steps the unused time buys at the cost the run measured.
 
 ``archive`` copies each run's record (plan, commands, CSV logs, test metrics: kilobytes, no checkpoint)
 into the repository, so that the report is made from committed files: run folders need not outlive
@@ -53,6 +57,17 @@ from src.utils.paths import without_folder
 def logged_cpu_hours(logs: pd.DataFrame) -> float:
     """The CPU hours a run's logs say it used (training and validation: the largest ``time/cpu_hours``)."""
     return float(logs["time/cpu_hours"].max()) if "time/cpu_hours" in logs else 0.0
+
+
+def steps_trained(run_dir: Path, logs: pd.DataFrame) -> int:
+    """Optimiser steps of a stage: the trainer's count in its test ``metrics.json``, else (still running) from the
+    last training-time row of its logs."""
+    path = run_dir / "metrics.json"
+    if path.is_file() and "global_step" in json.loads(path.read_text()):
+        return int(json.loads(path.read_text())["global_step"])
+    if logs.empty or "time/cpu_hours" not in logs:
+        return 0
+    return int(logs.dropna(subset=["time/cpu_hours"])["step"].max()) + 1
 
 
 #: The learned methods of the grid, in the grid's order.
@@ -202,6 +217,7 @@ class Stage:
     budget_cpu_h: float
     max_steps: int
     overrides: list[str] = field(default_factory=list)
+    planned_steps: int | None = None   # the probe's plan, where :func:`extend_plan` re-planned ``max_steps``
 
     @property
     def val_every(self) -> int:
@@ -259,6 +275,34 @@ def plan_beyond(method: str, recipe: str, budget_h: float, init_weights: str | N
     stage = Stage(method, method, width, batch, step_s, budget_h, _steps_for(budget_h * 3600, step_s), overrides)
     return {"method": method, "protocol": protocol, "beyond": recipe, "budget_cpu_h": budget_h, "width": width,
             "probe_step_cpu_s": {str(width): step_s}, "stages": [vars(stage)], "code": code_version()}
+
+
+def extend_plan(method_dir: Path) -> Stage:
+    """Re-plan the last stage of the stopped run in ``method_dir`` to the steps its CPU-hour budget buys at the step
+    cost the run measured (where the probe over-estimated it and the planned steps left budget unused): the steps
+    trained plus the unused CPU time over the measured CPU seconds a step. The run goes on from its ``last.ckpt``
+    when its command runs again, its schedule as it was (a milestone already passed stays passed)."""
+    plan_file = method_dir / "plan.json"
+    if not plan_file.is_file():
+        raise ConfigError(f"{method_dir} has no plan.json: give the folder of a budget run")
+    plan = json.loads(plan_file.read_text())
+    stage = Stage(**plan["stages"][-1])
+    run_dir = method_dir / stage.name
+    logs = read_csv_logs(run_dir)
+    done, used_s = steps_trained(run_dir, logs), logged_cpu_hours(logs) * 3600
+    if done == 0 or used_s == 0:
+        raise ConfigError(f"{run_dir} has logged no training yet: nothing to measure a step's cost on")
+    step_s = used_s / done
+    steps = done + int(max(0.0, stage.budget_cpu_h * 3600 - used_s) / step_s)
+    if steps <= stage.max_steps:
+        raise ConfigError(f"{run_dir}: its {stage.max_steps:,} planned steps already use its {stage.budget_cpu_h:g} "
+                          f"CPU hours at the measured {step_s:.2f} CPU s a step: nothing to extend")
+    extended = Stage(**{**vars(stage), "max_steps": steps, "step_cpu_s": step_s,
+                        "planned_steps": stage.planned_steps or stage.max_steps})
+    plan["stages"][-1] = vars(extended)
+    plan_file.write_text(json.dumps(plan, indent=2))
+    (run_dir / "done.json").unlink(missing_ok=True)
+    return extended
 
 
 def stage_command(stage: Stage, run_dir: Path, extra: list[str], protocol: str = "real_airplane") -> list[str]:
@@ -354,8 +398,14 @@ def ship_note(method_dir: Path, compute: str) -> str:
 
     plan = json.loads((method_dir / "plan.json").read_text())
     stages = [Stage(**s) for s in plan["stages"]]
+    def planned(stage: Stage) -> str:
+        if stage.planned_steps is None:
+            return "from a probe of its step cost"
+        return (f"from a probe of its step cost ({stage.planned_steps:,} steps), then from the step cost the run "
+                f"measured ({stage.step_cpu_s:.2f} CPU s a step)")
+
     parts = [f"{stage.model}: {stage.max_steps:,} steps x batch {stage.batch} at width {stage.width:g}, planned for a "
-             f"{stage.budget_cpu_h:g}-CPU-hour budget from a probe of its step cost, "
+             f"{stage.budget_cpu_h:g}-CPU-hour budget {planned(stage)}, "
              f"{logged_cpu_hours(read_csv_logs(method_dir / stage.name)):.2f} CPU hours used with validation" for stage in stages]
     start = next((o.split("=", 1)[1] for o in stages[0].overrides if o.startswith("init_weights=")), None)
     recipe = f"recipe {plan['beyond']}" if "beyond" in plan else "its authors' recipe on the steps the budget buys"
@@ -396,6 +446,9 @@ def main(argv: list[str] | None = None) -> int:
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/studies/cpu_budget/results/runs"))
+    extending = sub.add_parser("extend", help="re-plan a stopped run's steps to its budget at its measured step cost")
+    extending.add_argument("--root", type=Path, required=True)
+    extending.add_argument("--folder", required=True, help="the run's folder under --root (e.g. omnet_beyond)")
     shipping = sub.add_parser("ship", help="export a finished run as a shipped checkpoint with its card")
     shipping.add_argument("--root", type=Path, required=True)
     shipping.add_argument("--folder", required=True, help="the run's folder under --root (e.g. fmr, omnet_beyond)")
@@ -406,6 +459,11 @@ def main(argv: list[str] | None = None) -> int:
     def action() -> None:
         if args.command == "ship":
             print(f"wrote {ship(args.root / args.folder, args.name, args.compute)} and its card")
+            return
+        if args.command == "extend":
+            stage = extend_plan(args.root / args.folder)
+            print(f"{args.folder}/{stage.name}: {stage.max_steps:,} steps (planned {stage.planned_steps:,}) at the "
+                  f"measured {stage.step_cpu_s:.2f} CPU s a step; run its command again to go on")
             return
         if args.command == "archive":
             print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")

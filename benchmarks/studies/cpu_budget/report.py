@@ -17,7 +17,7 @@ from collections.abc import Collection
 
 import pandas as pd
 
-from benchmarks.studies.cpu_budget.budget import Stage, logged_cpu_hours, run_folders
+from benchmarks.studies.cpu_budget.budget import Stage, logged_cpu_hours, run_folders, steps_trained
 from src.utils.errors import ConfigError, exit_code_of
 from src.run.reporting import read_csv_logs
 from src.metrics import ERROR_R, ERROR_T, VAL_ERROR_R, VAL_ERROR_T
@@ -42,17 +42,6 @@ def method_curve(method_dir: Path) -> tuple[dict, pd.DataFrame]:
     return plan, curve.assign(method=method_dir.name)
 
 
-def _steps_trained(run_dir: Path, logs: pd.DataFrame) -> int:
-    """Optimiser steps of a stage: the trainer's count in its test ``metrics.json``, else (still running) from the
-    last training-time row of its logs."""
-    path = run_dir / "metrics.json"
-    if path.is_file() and "global_step" in json.loads(path.read_text()):
-        return int(json.loads(path.read_text())["global_step"])
-    if logs.empty or "time/cpu_hours" not in logs:
-        return 0
-    return int(logs.dropna(subset=["time/cpu_hours"])["step"].max()) + 1
-
-
 def _test_metrics(run_dir: Path) -> dict[str, float]:
     path = run_dir / "metrics.json"
     return json.loads(path.read_text())["metrics"] if path.is_file() else {}
@@ -63,7 +52,7 @@ def summary_row(method_dir: Path, plan: dict, curve: pd.DataFrame) -> dict:
     stages = [Stage(**s) for s in plan["stages"]]
     last = stages[-1]
     logs = [read_csv_logs(method_dir / s.name) for s in stages]
-    steps = [_steps_trained(method_dir / s.name, frame) for s, frame in zip(stages, logs)]
+    steps = [steps_trained(method_dir / s.name, frame) for s, frame in zip(stages, logs)]
     row = {"method": method_dir.name, "width": plan["width"], "batch": last.batch, "steps": steps[-1],
            "planned steps": last.max_steps, "pairs seen": steps[-1] * last.batch,
            "CPU h": sum(logged_cpu_hours(frame) for frame in logs if not frame.empty)}
