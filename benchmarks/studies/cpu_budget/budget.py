@@ -405,7 +405,7 @@ def ship_note(method_dir: Path, compute: str) -> str:
                 f"measured ({stage.step_cpu_s:.2f} CPU s a step)")
 
     parts = [f"{stage.model}: {stage.max_steps:,} steps x batch {stage.batch} at width {stage.width:g}, planned for a "
-             f"{stage.budget_cpu_h:g}-CPU-hour budget {planned(stage)}, "
+             f"{stage.budget_cpu_h:.3g}-CPU-hour budget {planned(stage)}, "
              f"{logged_cpu_hours(read_csv_logs(method_dir / stage.name)):.2f} CPU hours used with validation" for stage in stages]
     start = next((o.split("=", 1)[1] for o in stages[0].overrides if o.startswith("init_weights=")), None)
     recipe = f"recipe {plan['beyond']}" if "beyond" in plan else "its authors' recipe on the steps the budget buys"
