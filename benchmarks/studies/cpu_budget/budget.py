@@ -54,6 +54,7 @@ from src.run.resume import best_checkpoint, own_last_checkpoint
 from src.utils.errors import ConfigError, exit_code_of
 from src.utils.paths import without_folder
 
+
 def logged_cpu_hours(logs: pd.DataFrame) -> float:
     """The CPU hours a run's logs say it used (training and validation: the largest ``time/cpu_hours``)."""
     return float(logs["time/cpu_hours"].max()) if "time/cpu_hours" in logs else 0.0
@@ -63,8 +64,9 @@ def steps_trained(run_dir: Path, logs: pd.DataFrame) -> int:
     """Optimiser steps of a stage: the trainer's count in its test ``metrics.json``, else (still running) from the
     last training-time row of its logs."""
     path = run_dir / "metrics.json"
-    if path.is_file() and "global_step" in json.loads(path.read_text()):
-        return int(json.loads(path.read_text())["global_step"])
+    tested = json.loads(path.read_text()) if path.is_file() else {}
+    if "global_step" in tested:
+        return int(tested["global_step"])
     if logs.empty or "time/cpu_hours" not in logs:
         return 0
     return int(logs.dropna(subset=["time/cpu_hours"])["step"].max()) + 1
@@ -395,9 +397,9 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
 def ship_note(method_dir: Path, compute: str) -> str:
     """The note of a shipped checkpoint of the run in ``method_dir``: its protocol, each stage's steps, batch, width
     and the CPU hours it was planned and used, where it started from, how its weights were chosen, on ``compute``."""
-
     plan = json.loads((method_dir / "plan.json").read_text())
     stages = [Stage(**s) for s in plan["stages"]]
+
     def planned(stage: Stage) -> str:
         if stage.planned_steps is None:
             return "from a probe of its step cost"
