@@ -259,6 +259,7 @@ GRID_RULES: dict[str, Rule] = {
     "workers": integer(0, nullable=True),
     "timeout_s": number(0.0, low_open=True, nullable=True),
     "pairs_per_call": integer(1),
+    "save_every_s": number(0.0, low_open=True, nullable=True),
     "benchmark.max_pairs": integer(1, nullable=True),
     "progress": FLAG,
     "paper": FLAG,

@@ -212,6 +212,11 @@ class Cell:
         return self.folder / f"{self.stem}.json"
 
     @property
+    def progress_path(self) -> Path:
+        """The results of the cell's first pairs, kept while an unfinished call goes on (removed once it is written)."""
+        return self.folder / f"{self.stem}.partial.parquet"
+
+    @property
     def key(self) -> str:
         return f"{self.method}/{self.test_set.key}"
 

@@ -5,6 +5,7 @@ tidy table of a run (see :mod:`benchmarks.grid` for the files).
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -19,9 +20,11 @@ from baselines.methods import display_name
 from benchmarks.grid.plan import Cell, numbers_digest, plan
 from src.config import euler_seq_for
 from src.data.cache import file_sha256
+from src.utils.errors import UserError
 from src.utils.files import read_parquet, write_atomic, write_parquet, write_text_atomic
 from src.metrics import CHAMFER, ERROR_R, ERROR_T, MAE_R, MAE_T, MODIFIED_CHAMFER, PAIR_ERRORS
 
+PROGRESS_COLUMNS = ("cell", "transform", "seconds", "failed", "timed_out", "reason", "wall")
 TIDY_COLUMNS = ("method", "method_id", "experiment", "sampling", "partial", "dataset", "noise_sigma", "metric",
                 "value", "n_pairs", "n_failed", "seconds", "seconds_per_pair", "cell")
 
@@ -70,23 +73,74 @@ def register(registrator: Any, pairs: Sequence[tuple[np.ndarray, np.ndarray]], w
     return run_pairs(registrator, pairs, workers=workers, timeout_s=timeout_s, progress=progress)
 
 
+#: The first call of a cell's pairs when progress is saved: enough to measure the method's rate.
+FIRST_CHUNK_PAIRS = 32
+
+
+def load_progress(cell: Cell) -> tuple[list[RegistrationResult], list[float]]:
+    """The results an interrupted run saved for ``cell`` (its first pairs, in order) and each one's share of the
+    wall time; none when nothing was saved, or (one warning line) when the file is damaged or not this cell's."""
+    path = cell.progress_path
+    if not path.is_file():
+        return [], []
+    try:
+        frame = read_parquet(path)
+    except UserError as err:
+        print(f"warning: cell {cell.key}: {path.name} is damaged ({err}); registering its pairs again", file=sys.stderr)
+        return [], []
+    if not set(PROGRESS_COLUMNS) <= set(frame.columns) or (frame["cell"] != cell.digest).any() or len(frame) > cell.n_pairs:
+        print(f"warning: cell {cell.key}: {path.name} is not this cell's; registering its pairs again", file=sys.stderr)
+        return [], []
+    results = [RegistrationResult(np.asarray(row.transform, dtype=np.float64).reshape(4, 4), float(row.seconds),
+                                  bool(row.failed), bool(row.timed_out), str(row.reason)) for row in frame.itertuples()]
+    return results, [float(w) for w in frame["wall"]]
+
+
+def save_progress(cell: Cell, results: Sequence[RegistrationResult], walls: Sequence[float]) -> None:
+    """Keep the results of ``cell``'s first pairs (:func:`load_progress` reads them back)."""
+    import pandas as pd
+
+    frame = pd.DataFrame({
+        "cell": cell.digest,
+        "transform": [np.asarray(r.transform, dtype=np.float64).reshape(-1).tolist() for r in results],
+        "seconds": [float(r.seconds) for r in results],
+        "failed": [bool(r.failed) for r in results],
+        "timed_out": [bool(r.timed_out) for r in results],
+        "reason": [r.reason for r in results],
+        "wall": list(walls),
+    }, columns=list(PROGRESS_COLUMNS))
+    cell.folder.mkdir(parents=True, exist_ok=True)
+    write_parquet(frame, cell.progress_path)
+
+
 def register_cells(cells: Sequence[Cell], cfg: DictConfig) -> list[tuple[list[RegistrationResult], float]]:
-    """Register the pairs of ``cells`` (all of one registrator): one result list per cell and the
-    wall time of the call. A classical method's cells go through one :func:`run_pairs` call (one set
-    of worker processes for all of them); a learned method's through :func:`run_batches`."""
+    """Register the pairs of ``cells`` (all of one registrator): one result list per cell and its share of the
+    wall time. A classical method's cells go through :func:`run_pairs` calls (one set of worker processes a call),
+    a learned method's through :func:`run_batches`. With ``save_every_s`` the pairs are registered in calls of about
+    that long, each followed by the cells' progress files, and the pairs an interrupted run saved are not
+    registered again; without it, in one call."""
     clouds = [[(src, ref) for src, ref, _ in cell.test_set.pairs(cell.n_pairs)] for cell in cells]
-    flat = [pair for cell_clouds in clouds for pair in cell_clouds]
-    start = time.perf_counter()
+    saved = [load_progress(cell) for cell in cells]
+    results = [list(done) for done, _ in saved]
+    walls = [list(shares) for _, shares in saved]
+    todo = [(i, k) for i, cell in enumerate(cells) for k in range(len(results[i]), cell.n_pairs)]
     workers = cfg.get("workers")
-    results = register(cells[0].registrator, flat, None if workers is None else int(workers), cfg.get("timeout_s"),
-                       bool(cfg.progress))
-    wall = time.perf_counter() - start
-    out, offset = [], 0
-    for cell_clouds in clouds:
-        part = results[offset : offset + len(cell_clouds)]
-        out.append((part, wall * len(cell_clouds) / max(len(flat), 1)))
-        offset += len(cell_clouds)
-    return out
+    save_every_s = cfg.get("save_every_s")
+    size = min(FIRST_CHUNK_PAIRS, len(todo)) if save_every_s else len(todo)
+    while todo:
+        chunk, todo = todo[:size], todo[size:]
+        start = time.perf_counter()
+        out = register(cells[0].registrator, [clouds[i][k] for i, k in chunk],
+                       None if workers is None else int(workers), cfg.get("timeout_s"), bool(cfg.progress))
+        per_pair = (time.perf_counter() - start) / len(chunk)
+        for (i, _), result in zip(chunk, out):
+            results[i].append(result)
+            walls[i].append(per_pair)
+        if todo:
+            for i in sorted({i for i, _ in chunk}):
+                save_progress(cells[i], results[i], walls[i])
+            size = max(1, int(float(save_every_s) / max(per_pair, 1e-9)))
+    return [(cell_results, float(sum(shares))) for cell_results, shares in zip(results, walls)]
 
 
 def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) -> dict[str, Any]:
@@ -140,6 +194,7 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
     summary = json.loads(json.dumps(summary, default=str))  # checksummed as it reads back
     summary["checksum"] = numbers_digest(summary)
     write_text_atomic(cell.summary_path, json.dumps(summary, indent=2))
+    cell.progress_path.unlink(missing_ok=True)
     return summary
 
 

@@ -181,6 +181,47 @@ def test_rerun_reuses_finished_cells(tmp_path, cache_root, monkeypatch):
     assert json.loads(json_file.read_text())["complete"] is True
 
 
+def test_an_interrupted_call_resumes_from_the_pairs_it_saved(tmp_path, cache_root, monkeypatch, capsys):
+    """A long call (Go-ICP: an hour a cell) interrupted near its end registered every pair again."""
+    whole = grid_run.run_grid(grid_cfg(tmp_path / "whole", cache_root, "benchmark.methods=[toy]"))
+    cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "save_every_s=1e-9")
+    monkeypatch.setattr(grid_run, "FIRST_CHUNK_PAIRS", 1)
+    registered, real_register = [], grid_run.register
+
+    def register_until(limit):
+        def fake(registrator, pairs, *args):
+            if len(registered) + len(pairs) > limit:
+                raise KeyboardInterrupt
+            registered.extend(pairs)
+            return real_register(registrator, pairs, *args)
+        return fake
+
+    monkeypatch.setattr(grid_run, "register", register_until(4))
+    with pytest.raises(KeyboardInterrupt):
+        grid_run.run_grid(cfg)
+    cells = tmp_path / "out" / "cells"
+    saved = sorted(len(pd.read_parquet(p)) for p in cells.glob("*.partial.parquet"))
+    assert saved == [1, 3] and not list(cells.glob("*.json"))  # 3 pairs of the first cell, 1 of the second
+
+    registered.clear()
+    monkeypatch.setattr(grid_run, "register", register_until(2))
+    resumed = grid_run.run_grid(cfg)
+    assert len(registered) == 2 and resumed.computed == 2 and not list(cells.glob("*.partial.parquet"))
+    kept = ["method", "experiment", "partial", "pair", "transform", "failed", "reason", "Error(R)"]
+    pd.testing.assert_frame_equal(whole.pairs[kept], resumed.pairs[kept])
+    assert resumed.pairs["failed"].sum() == 3  # the toy's failures (PRNet manner) came back from the saved pairs
+
+    # a damaged progress file is one warning line, its pairs registered again
+    monkeypatch.setattr(grid_run, "register", register_until(10))
+    summary = next(cells.glob("*.json"))
+    summary.unlink()
+    summary.with_suffix(".partial.parquet").write_bytes(b"not parquet")
+    capsys.readouterr()
+    registered.clear()
+    grid_run.run_grid(cfg)
+    assert len(registered) == 3 and "is damaged" in capsys.readouterr().err
+
+
 def test_damaged_cell_file_is_recomputed_with_a_warning(tmp_path, cache_root, capsys):
     cfg = grid_cfg(tmp_path / "out", cache_root, "benchmark.methods=[toy]", "benchmark.partials=[rpmnet]")
     first = grid_run.run_grid(cfg)
