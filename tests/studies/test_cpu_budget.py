@@ -123,6 +123,15 @@ def _fake_stage(run_dir: Path, rows: list[dict], test: dict | None = None, done:
         (run_dir / "done.json").write_text("{}")
 
 
+def test_steps_trained_are_the_tested_count_until_an_extended_run_logs_further(tmp_path):
+    _fake_stage(tmp_path, [{"step": 979, "time/cpu_hours": 0.5}])
+    (tmp_path / "metrics.json").write_text(json.dumps({"global_step": 1000}))
+    logs = cpu_budget.read_csv_logs(tmp_path)
+    assert cpu_budget.steps_trained(tmp_path, logs) == 1000  # the last logged row comes before the last step
+    more = pd.concat([logs, pd.DataFrame([{"step": 1499, "time/cpu_hours": 0.75}])], ignore_index=True)
+    assert cpu_budget.steps_trained(tmp_path, more) == 1500
+
+
 def test_report_shifts_a_second_stage_by_the_first_and_tabulates_each_method(tmp_path):
     from benchmarks.studies.cpu_budget.report import collect, report
 

@@ -61,15 +61,13 @@ def logged_cpu_hours(logs: pd.DataFrame) -> float:
 
 
 def steps_trained(run_dir: Path, logs: pd.DataFrame) -> int:
-    """Optimiser steps of a stage: the trainer's count in its test ``metrics.json``, else (still running) from the
-    last training-time row of its logs."""
+    """Optimiser steps of a stage: the trainer's count in its test ``metrics.json`` or, where its logs go further (a
+    run extended and still training), the step after their last training-time row."""
     path = run_dir / "metrics.json"
-    tested = json.loads(path.read_text()) if path.is_file() else {}
-    if "global_step" in tested:
-        return int(tested["global_step"])
+    tested = int(json.loads(path.read_text()).get("global_step", 0)) if path.is_file() else 0
     if logs.empty or "time/cpu_hours" not in logs:
-        return 0
-    return int(logs.dropna(subset=["time/cpu_hours"])["step"].max()) + 1
+        return tested
+    return max(tested, int(logs.dropna(subset=["time/cpu_hours"])["step"].max()) + 1)
 
 
 #: The learned methods of the grid, in the grid's order.
