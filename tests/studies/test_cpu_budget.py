@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from benchmarks.studies.cpu_budget import budget as cpu_budget
@@ -187,12 +188,16 @@ def test_run_archives_each_method_when_it_returns(tmp_path, monkeypatch):
 def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_beside_the_method(tmp_path, monkeypatch):
     from benchmarks.studies.cpu_budget.report import collect
 
-    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 1.5, "checkpoints/start.ckpt", probe=lambda m, w, b: 2.0)
-    (stage,) = plan["stages"]
     recipe = compose_recipe("omnet", "omnet_cpu")
-    assert (stage["width"], stage["batch"]) == (recipe.model_scale, recipe.data.batch_size)
-    assert stage["max_steps"] == int(1.5 * 3600 / (2.0 * OVERHEAD))
-    assert stage["overrides"] == ["recipe=omnet_cpu", "init_weights=checkpoints/start.ckpt"] and plan["beyond"] == "omnet_cpu"
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 1.5, probe=lambda m, w, b: 2.0)
+    assert (plan["stages"][0]["width"], plan["stages"][0]["batch"]) == (recipe.model_scale, recipe.data.batch_size)
+    start = tmp_path / "start.ckpt"  # a fine-tune goes on at the width of the network it starts from
+    torch.save({"state_dict": {}, "hyper_parameters": {"network": {"_target_": "omnet", "width": 0.5}}}, start)
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 1.5, str(start), probe=lambda m, w, b: 2.0 * w / 0.25)
+    (stage,) = plan["stages"]
+    assert (stage["width"], stage["batch"]) == (0.5, recipe.data.batch_size)
+    assert stage["max_steps"] == int(1.5 * 3600 / (4.0 * OVERHEAD))  # probed at that width
+    assert stage["overrides"] == ["recipe=omnet_cpu", f"init_weights={start}"] and plan["beyond"] == "omnet_cpu"
     commands = []
 
     def train(run_dir: Path, command: list[str]) -> int:
@@ -204,7 +209,7 @@ def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_besid
 
     monkeypatch.setattr(cpu_budget, "train_logged", train)
     assert cpu_budget.run_method("omnet", tmp_path, 1.5, "omnet_beyond", lambda: plan) == "omnet_beyond: done"
-    assert "recipe=omnet_cpu" in commands[0] and "init_weights=checkpoints/start.ckpt" in commands[0]
+    assert "recipe=omnet_cpu" in commands[0] and f"init_weights={start}" in commands[0] and "model_scale=0.5" in commands[0]
     assert cpu_budget.run_folders(tmp_path) == ["omnet_beyond"]
     curves, table = collect(tmp_path)
     assert list(curves["method"]) == ["omnet_beyond"] and table.loc[0, "test Error(R)"] == 16.0

@@ -265,9 +265,14 @@ BEYOND = "_beyond"
 def plan_beyond(method: str, recipe: str, budget_h: float, init_weights: str | None = None,
                 protocol: str = "real_airplane", probe=probe_step_seconds) -> dict[str, Any]:
     """A run of ``method`` beyond the equal budget: ``recipe`` as it is (its width, batch and a schedule that spans
-    the run), the steps ``budget_h`` buys at the probed step cost, optionally starting from ``init_weights``."""
+    the run), the steps ``budget_h`` buys at the probed step cost, optionally starting from ``init_weights`` (then at
+    that checkpoint's width: a fine-tune goes on with the network it starts from)."""
     cfg = compose_recipe(method, recipe)
     width, batch = float(cfg.model_scale), int(cfg.data.batch_size)
+    if init_weights:
+        from src.run.checkpoint_io import read_checkpoint
+
+        width = float(read_checkpoint(init_weights)["hyper_parameters"]["network"].get("width", width))
     step_s = probe(method, width, batch)
     if not math.isfinite(step_s):
         raise ConfigError(f"{method}: no training step ran at width {width}, batch {batch} (out of memory?)")
@@ -440,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
     beyond.add_argument("--method", required=True, choices=METHODS)
     beyond.add_argument("--recipe", required=True, help="conf/recipe/<name>.yaml, taken as it is (e.g. omnet_cpu)")
     beyond.add_argument("--budget-h", type=float, required=True, help="CPU hours of this run, one thread")
-    beyond.add_argument("--init-weights", default=None, help="start from this checkpoint's weights (src.train init_weights)")
+    beyond.add_argument("--init-weights", default=None, help="start from this checkpoint's weights, at its width (src.train init_weights)")
     beyond.add_argument("--archive", type=Path, default=None, help="archive the run's record here when it returns")
     beyond.add_argument("--protocol", choices=sorted(PROTOCOLS), default="real_airplane", help="the data it trains on")
     arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
