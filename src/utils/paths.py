@@ -40,3 +40,9 @@ def without_folder(text: str, folder: Path, placeholder: str) -> str:
     for spelling in sorted({str(folder.resolve()), str(folder.absolute())}, key=len, reverse=True):
         text = re.sub(re.escape(spelling) + r"(?![\w.-])", lambda _: placeholder, text)
     return text
+
+
+def with_folder(text: str, folder: Path, placeholder: str) -> str:
+    """The inverse of :func:`without_folder`: each ``placeholder`` that starts a path (alone, or before a ``/``)
+    written as ``folder``'s absolute path."""
+    return re.sub(r"(?<![\w./-])" + re.escape(placeholder) + r"(?![\w.-])", lambda _: str(folder.absolute()), text)

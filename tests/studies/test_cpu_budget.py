@@ -185,6 +185,47 @@ def test_run_archives_each_method_when_it_returns(tmp_path, monkeypatch):
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["dcp", "fmr"] and (tmp_path / "a" / "fmr" / "plan.json").is_file()
 
 
+def _checkpoint(path: Path, run_dir: Path, weight: float) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    folder = str(run_dir / "checkpoints")
+    torch.save({"global_step": 7, "state_dict": {"w": torch.full((2,), weight)}, "optimizer_states": [{"m": 1.0}],
+                "callbacks": {"ModelCheckpoint{'monitor': 'val/score'}": {
+                    "dirpath": folder, "best_model_path": f"{folder}/best-3.ckpt",
+                    "best_k_models": {f"{folder}/best-3.ckpt": torch.tensor(4.0)}}}}, path)
+
+
+def test_an_unfinished_run_is_archived_with_its_checkpoints_and_goes_on_where_it_is_restored(tmp_path):
+    """On a new machine the archived last.ckpt named the old run folder: the best checkpoint so far was lost."""
+    root, archive, elsewhere = tmp_path / "runs", tmp_path / "archive", tmp_path / "other" / "runs"
+    for method, done in (("dcp", False), ("fmr", True)):
+        run_dir = root / method / method
+        run_dir.mkdir(parents=True)
+        (root / method / "plan.json").write_text(json.dumps({"stages": [{"name": method}]}))
+        (run_dir / "command.txt").write_text(f"python -m src.train hydra.run.dir={run_dir}")
+        _checkpoint(run_dir / "checkpoints" / "last.ckpt", run_dir, 1.0)
+        _checkpoint(run_dir / "checkpoints" / "best-3.ckpt", run_dir, 2.0)
+        if done:
+            (run_dir / "done.json").write_text("{}")
+    assert cpu_budget.main(["archive", "--root", str(root), "--out", str(archive)]) == 0
+    assert sorted(p.name for p in (archive / "dcp" / "dcp" / "checkpoints").iterdir()) == ["best-3.ckpt", "last.ckpt"]
+    assert not (archive / "fmr" / "fmr" / "checkpoints").exists()  # a finished run ships its checkpoint instead
+    for path in archive.rglob("*"):
+        assert path.is_dir() or str(root).encode() not in path.read_bytes(), path
+    assert "optimizer_states" not in torch.load(archive / "dcp" / "dcp" / "checkpoints" / "best-3.ckpt", weights_only=False)
+
+    assert cpu_budget.main(["restore", "--archive", str(archive), "--root", str(elsewhere)]) == 0
+    run_dir = elsewhere / "dcp" / "dcp"
+    last = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=False)
+    (state,) = last["callbacks"].values()
+    assert state["dirpath"] == str(run_dir / "checkpoints") and state["best_model_path"] == str(run_dir / "checkpoints" / "best-3.ckpt")
+    assert list(state["best_k_models"]) == [str(run_dir / "checkpoints" / "best-3.ckpt")]
+    assert torch.equal(last["state_dict"]["w"], torch.ones(2)) and last["optimizer_states"] == [{"m": 1.0}]
+    assert (run_dir / "command.txt").read_text() == f"python -m src.train hydra.run.dir={run_dir}"
+    (run_dir / "command.txt").write_text("going on")
+    assert cpu_budget.restore_runs(archive, elsewhere) == ([], ["dcp", "fmr"])  # a run already there is left alone
+    assert (run_dir / "command.txt").read_text() == "going on"
+
+
 def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_beside_the_method(tmp_path, monkeypatch):
     from benchmarks.studies.cpu_budget.report import collect
 

@@ -52,7 +52,8 @@ from benchmarks.studies.cpu_budget.recipes import (
 from src.run.reporting import read_csv_logs
 from src.run.resume import best_checkpoint, own_last_checkpoint
 from src.utils.errors import ConfigError, exit_code_of
-from src.utils.paths import without_folder
+from src.utils.files import write_atomic
+from src.utils.paths import with_folder, without_folder
 
 
 def logged_cpu_hours(logs: pd.DataFrame) -> float:
@@ -354,8 +355,12 @@ def run_method(method: str, root: Path, budget_h: float, folder: str | None = No
     return f"{method_dir.name}: done"
 
 
-#: A stage's record: what ran (command, plan), its logs and its test metrics; checkpoints stay in the run folder.
+#: A stage's record: what ran (command, plan), its logs and its test metrics; checkpoints stay in the run folder,
+#: but for an unfinished stage's (:func:`archive_runs`).
 RECORD_FILES = ("command.txt", "done.json", "metrics.json")
+#: What a checkpoint holds as numbers; the rest (its callbacks' state: the best checkpoint's path, the folder) may
+#: name the run folder.
+CHECKPOINT_TENSORS = ("state_dict", "optimizer_states")
 
 
 def run_folders(root: Path) -> list[str]:
@@ -366,6 +371,28 @@ def run_folders(root: Path) -> list[str]:
 def _copy_record(source: Path, target: Path, root: Path) -> None:
     """A text record copied with ``root`` written as ``RUNS``: the repository names no path of this machine."""
     target.write_text(without_folder(source.read_text(), root, "RUNS"))
+
+
+def _map_strings(obj: Any, change: Callable[[str], str]) -> Any:
+    """``obj`` with ``change`` applied to every string in it, the keys of its mappings included."""
+    if isinstance(obj, str):
+        return change(obj)
+    if isinstance(obj, dict):
+        return {_map_strings(key, change): _map_strings(value, change) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_map_strings(value, change) for value in obj)
+    return obj
+
+
+def _copy_checkpoint(source: Path, target: Path, change: Callable[[str], str], drop: Sequence[str] = ()) -> None:
+    """A Lightning checkpoint copied with ``change`` applied to the strings of all but its tensors, less ``drop``."""
+    import torch
+
+    checkpoint = torch.load(source, map_location="cpu", weights_only=False)
+    tensors = {key: checkpoint[key] for key in CHECKPOINT_TENSORS if key in checkpoint and key not in drop}
+    rest = {key: value for key, value in checkpoint.items() if key not in CHECKPOINT_TENSORS and key not in drop}
+    target.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(target, lambda tmp: torch.save({**_map_strings(rest, change), **tensors}, tmp))
 
 
 def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) -> list[str]:
@@ -391,10 +418,50 @@ def archive_runs(root: Path, out: Path, methods: Sequence[str] | None = None) ->
                 if (run_dir / name).is_file():
                     copy_dir.mkdir(parents=True, exist_ok=True)
                     _copy_record(run_dir / name, copy_dir / name, root)
+            if not (run_dir / "done.json").is_file():
+                _archive_checkpoints(run_dir, copy_dir, root)
         archived.append(method)
     if not archived:
         raise ConfigError(f"no method run under {root}: nothing to archive")
     return archived
+
+
+def _archive_checkpoints(run_dir: Path, copy_dir: Path, root: Path) -> None:
+    """What an unfinished stage goes on from on another machine: its ``last.ckpt`` and its best checkpoints so far
+    (without the optimiser's state), ``root`` written as ``RUNS`` (:func:`restore_runs` writes it back)."""
+    last = own_last_checkpoint(run_dir)
+    if not last.is_file():
+        return
+    change = lambda text: without_folder(text, root, "RUNS")
+    _copy_checkpoint(last, copy_dir / last.relative_to(run_dir), change)
+    for best in last.parent.glob("best-*.ckpt"):
+        _copy_checkpoint(best, copy_dir / "checkpoints" / best.name, change, drop=("optimizer_states",))
+
+
+def restore_runs(archive: Path, root: Path) -> tuple[list[str], list[str]]:
+    """Copy the archived runs (:func:`archive_runs`) into ``root``, ``RUNS`` written as ``root``, so that each
+    unfinished one goes on from its checkpoints as it would have where it ran. A run folder ``root`` already has is
+    left as it is. Returns the folders restored and those kept."""
+    restored, kept = [], []
+    for method in run_folders(archive):
+        target = root / method
+        if (target / "plan.json").is_file():
+            kept.append(method)
+            continue
+        change = lambda text: with_folder(text, root, "RUNS")
+        for source in sorted(p for p in (archive / method).rglob("*") if p.is_file()):
+            copy = target / source.relative_to(archive / method)
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            if source.suffix == ".ckpt":
+                _copy_checkpoint(source, copy, change)
+            elif source.suffix == ".csv":
+                shutil.copy2(source, copy)
+            else:
+                copy.write_text(change(source.read_text()))
+        restored.append(method)
+    if not restored and not kept:
+        raise ConfigError(f"no archived run under {archive}: give the folder `archive` wrote")
+    return restored, kept
 
 
 def ship_note(method_dir: Path, compute: str) -> str:
@@ -448,9 +515,13 @@ def main(argv: list[str] | None = None) -> int:
     beyond.add_argument("--init-weights", default=None, help="start from this checkpoint's weights, at its width (src.train init_weights)")
     beyond.add_argument("--archive", type=Path, default=None, help="archive the run's record here when it returns")
     beyond.add_argument("--protocol", choices=sorted(PROTOCOLS), default="real_airplane", help="the data it trains on")
-    arc = sub.add_parser("archive", help="copy the runs' records (no checkpoints) into the repository")
+    arc = sub.add_parser("archive", help="copy the runs' records (and what an unfinished run goes on from) into the "
+                                         "repository")
     arc.add_argument("--root", type=Path, required=True)
     arc.add_argument("--out", type=Path, default=Path("benchmarks/studies/cpu_budget/results/runs"))
+    restoring = sub.add_parser("restore", help="copy archived runs into a folder of runs (on another machine), to go on")
+    restoring.add_argument("--archive", type=Path, required=True, help="the folder `archive` wrote")
+    restoring.add_argument("--root", type=Path, required=True, help="folder of the runs (outside the repository)")
     extending = sub.add_parser("extend", help="re-plan a stopped run's steps to its budget at its measured step cost")
     extending.add_argument("--root", type=Path, required=True)
     extending.add_argument("--folder", required=True, help="the run's folder under --root (e.g. omnet_beyond)")
@@ -472,6 +543,11 @@ def main(argv: list[str] | None = None) -> int:
             return
         if args.command == "archive":
             print(f"archived {', '.join(archive_runs(args.root, args.out))} into {args.out}")
+            return
+        if args.command == "restore":
+            restored, kept = restore_runs(args.archive, args.root)
+            print(f"restored {', '.join(restored) or 'nothing'} into {args.root}"
+                  + (f"; kept the runs already there: {', '.join(kept)}" if kept else ""))
             return
         if args.command == "beyond":
             folder = args.method + BEYOND
