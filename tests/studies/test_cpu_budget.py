@@ -260,8 +260,11 @@ def test_a_run_beyond_the_budget_takes_its_recipe_as_it_is_and_is_reported_besid
 def test_a_shipped_run_says_what_it_trained_on_how_long_and_from_what(tmp_path):
     from src.utils.errors import ConfigError
 
-    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 2.0, "RUNS/omnet_beyond/omnet/checkpoints/best-10.ckpt",
-                                  protocol="gaussian_noise_npy", probe=lambda m, w, b: 2.0)
+    start = tmp_path / "clean" / "best-10.ckpt"
+    start.parent.mkdir()
+    torch.save({"state_dict": {}, "hyper_parameters": {"network": {"_target_": "omnet", "width": 0.25}}}, start)
+    plan = cpu_budget.plan_beyond("omnet", "omnet_cpu", 2.0, str(start), protocol="gaussian_noise_npy",
+                                  probe=lambda m, w, b: 2.0)
     (tmp_path / "omnet_noisy").mkdir()
     (tmp_path / "omnet_noisy" / "plan.json").write_text(json.dumps(plan))
     run_dir = tmp_path / "omnet_noisy" / "omnet"
