@@ -38,7 +38,7 @@ RECIPES = sorted(p.stem for p in (CONF / "recipe").glob("*.yaml"))
 SCHEDULER_TYPES = {"multistep": MultiStepLR, "plateau": ReduceLROnPlateau, "cosine": LambdaLR, "onecycle": OneCycleLR}
 
 #: Recipes of this framework's own studies, not the authors' (their sources are named in their header).
-OWN_RECIPES = ("omnet_cpu",)
+OWN_RECIPES = ("omnet_cpu", "omnet_finetune")
 #: A citation of a file and line of the authors' code (or paper): ``main.py:541``, ``params.json:12-13``.
 CITATION = re.compile(r"[\w./-]+\.\w+:\d+")
 
@@ -114,6 +114,14 @@ def test_the_cpu_recipe_decays_at_its_fraction_of_any_budget(tmp_path):
     assert rates == pytest.approx([1.0] * 3 + [0.1] * 3)
     rates, _ = _fit({"name": "multistep", "fractions": [0.5], "gamma": 0.1}, max_epochs=4)  # 12 steps
     assert rates == pytest.approx([1.0] * 6 + [0.1] * 6)
+
+
+def test_the_finetuning_recipe_is_the_cpu_recipe_at_its_final_rate_without_a_schedule(tmp_path):
+    cpu, finetune = _recipe("omnet_cpu"), _recipe("omnet_finetune")
+    assert finetune.model.lr == pytest.approx(cpu.model.lr * cpu.model.scheduler.gamma) and finetune.model.scheduler is None
+    assert (finetune.model_scale, finetune.data.batch_size) == (cpu.model_scale, cpu.data.batch_size)
+    cfg = _compose(tmp_path, "+exp=unseen_shapes", "recipe=omnet_finetune", "trainer.max_steps=50")
+    assert cfg.model.lr == finetune.model.lr and cfg.model.scheduler is None and cfg.trainer.max_steps == 50
 
 
 @pytest.mark.parametrize("name", MODELS)
