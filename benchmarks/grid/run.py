@@ -96,19 +96,21 @@ def load_progress(cell: Cell) -> tuple[list[RegistrationResult], list[float]]:
     return results, [float(w) for w in frame["wall"]]
 
 
+def result_columns(results: Sequence[RegistrationResult]) -> dict[str, list]:
+    """The columns of a cell's per-pair files that hold its results: transform, seconds, failed, reason."""
+    return {"transform": [np.asarray(r.transform, dtype=np.float64).reshape(-1).tolist() for r in results],
+            "seconds": [float(r.seconds) for r in results],
+            "failed": [bool(r.failed) for r in results],
+            "reason": [r.reason for r in results]}
+
+
 def save_progress(cell: Cell, results: Sequence[RegistrationResult], walls: Sequence[float]) -> None:
     """Keep the results of ``cell``'s first pairs (:func:`load_progress` reads them back)."""
     import pandas as pd
 
-    frame = pd.DataFrame({
-        "cell": cell.digest,
-        "transform": [np.asarray(r.transform, dtype=np.float64).reshape(-1).tolist() for r in results],
-        "seconds": [float(r.seconds) for r in results],
-        "failed": [bool(r.failed) for r in results],
-        "timed_out": [bool(r.timed_out) for r in results],
-        "reason": [r.reason for r in results],
-        "wall": list(walls),
-    }, columns=list(PROGRESS_COLUMNS))
+    frame = pd.DataFrame({"cell": cell.digest, **result_columns(results),
+                          "timed_out": [bool(r.timed_out) for r in results], "wall": list(walls)},
+                         columns=list(PROGRESS_COLUMNS))
     cell.folder.mkdir(parents=True, exist_ok=True)
     write_parquet(frame, cell.progress_path)
 
@@ -152,6 +154,7 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
     pairs = t.pairs(cell.n_pairs)
     euler_seq = euler_seq_for(t.partial)
     metrics, errors = cell_metrics(results, pairs, euler_seq, t.raw(cell.n_pairs))
+    columns = result_columns(results)
     frame = pd.DataFrame({
         "method": cell.method,
         "experiment": t.experiment,
@@ -160,11 +163,11 @@ def finish_cell(cell: Cell, results: Sequence[RegistrationResult], wall: float) 
         "dataset": t.dataset_name,
         "cell": cell.digest,
         "pair": range(len(results)),
-        "transform": [np.asarray(r.transform, dtype=np.float64).reshape(-1).tolist() for r in results],
+        "transform": columns["transform"],
         "transform_gt": [gt.reshape(-1).tolist() for _, _, gt in pairs],
-        "seconds": [float(r.seconds) for r in results],
-        "failed": [bool(r.failed) for r in results],
-        "reason": [r.reason for r in results],
+        "seconds": columns["seconds"],
+        "failed": columns["failed"],
+        "reason": columns["reason"],
         **{name: errors[name] for name in PAIR_ERRORS},
     })
     cell.folder.mkdir(parents=True, exist_ok=True)

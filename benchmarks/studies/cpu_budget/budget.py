@@ -443,12 +443,12 @@ def restore_runs(archive: Path, root: Path) -> tuple[list[str], list[str]]:
     unfinished one goes on from its checkpoints as it would have where it ran. A run folder ``root`` already has is
     left as it is. Returns the folders restored and those kept."""
     restored, kept = [], []
+    change = lambda text: with_folder(text, root, "RUNS")
     for method in run_folders(archive):
         target = root / method
         if (target / "plan.json").is_file():
             kept.append(method)
             continue
-        change = lambda text: with_folder(text, root, "RUNS")
         for source in sorted(p for p in (archive / method).rglob("*") if p.is_file()):
             copy = target / source.relative_to(archive / method)
             copy.parent.mkdir(parents=True, exist_ok=True)

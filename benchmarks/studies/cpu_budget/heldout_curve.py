@@ -70,9 +70,9 @@ def reference_error(grid_results: Path, method: str, experiment: str) -> float:
     return float(rows["value"].iloc[0])
 
 
-def tested_points(run_dir: Path, checkpoints: Sequence[Path], overrides: Sequence[str], work: Path) -> pd.DataFrame:
-    """One row a checkpoint, by step: its step, the CPU hours used by then, the test Error(R) / Error(t)."""
-    logs = read_csv_logs(run_dir)
+def tested_points(logs: pd.DataFrame, checkpoints: Sequence[Path], overrides: Sequence[str], work: Path) -> pd.DataFrame:
+    """One row a checkpoint, by step: its step, the CPU hours its run (``logs``) had used by then, the test
+    Error(R) / Error(t)."""
     steps = [checkpoint_step(path) for path in checkpoints]
     tests = [evaluate(path, overrides, work)["metrics"] for path in checkpoints]
     frame = pd.DataFrame({"checkpoint": [path.name for path in checkpoints], "step": steps,
@@ -116,8 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     def action() -> None:
         args.out.mkdir(parents=True, exist_ok=True)
         reference = (args.reference, reference_error(args.grid, args.reference, args.experiment))
-        tests = tested_points(args.run, args.checkpoints, args.eval, args.work)
         logs = read_csv_logs(args.run)
+        tests = tested_points(logs, args.checkpoints, args.eval, args.work)
         validation = logs.dropna(subset=[VAL_ERROR_R])[["step", CPU_HOURS, VAL_ERROR_R]]
         tests.to_csv(args.out / "test_curve.csv", index=False)
         validation.to_csv(args.out / "validation_curve.csv", index=False)
