@@ -13,7 +13,7 @@ def test_a_folder_is_written_as_its_placeholder_in_both_spellings_and_only_as_a_
 
 
 def test_a_placeholder_is_written_back_as_the_folder_only_where_it_starts_a_path(tmp_path):
-    text = "dir=RUNS ckpt=RUNS/a/best.ckpt \"RUNS\" RUNS_OLD/x /data/RUNS/x MYRUNS"
+    text = "dir=RUNS ckpt=RUNS/a/best.ckpt \"RUNS\" RUNS_OLD/x /srv/RUNS/x MYRUNS"
     assert with_folder(text, tmp_path, "RUNS") == (
-        f"dir={tmp_path} ckpt={tmp_path}/a/best.ckpt \"{tmp_path}\" RUNS_OLD/x /data/RUNS/x MYRUNS")
+        f"dir={tmp_path} ckpt={tmp_path}/a/best.ckpt \"{tmp_path}\" RUNS_OLD/x /srv/RUNS/x MYRUNS")
     assert without_folder(with_folder(text, tmp_path, "RUNS"), tmp_path, "RUNS") == text
