@@ -107,7 +107,8 @@ class LearnedConfig(RegistratorConfig):
 
 def shipped_checkpoint(method: str, target: str, directory: Path | None = None) -> Path:
     """The shipped checkpoint (``checkpoints/<name>.ckpt`` with its ``.json`` card) of a network: one trained
-    on real data if any, else the first by name; CheckpointError (naming the fix) when none is shipped."""
+    on real data if any, a model of clean pairs before one fine-tuned on noisy pairs (``gaussian_noise``), else
+    the first by name; CheckpointError (naming the fix) when none is shipped."""
     directory = SHIPPED_DIR if directory is None else directory
     cards = {path.with_suffix(".ckpt"): json.loads(path.read_text()) for path in sorted(directory.glob("*.json"))}
     mine = [path for path, card in cards.items() if card["network"]["_target_"] == target and path.is_file()]
@@ -116,7 +117,8 @@ def shipped_checkpoint(method: str, target: str, directory: Path | None = None) 
             f"method '{method}' needs a checkpoint and none is shipped for it in {directory}: pass checkpoint=PATH "
             f"(a .ckpt written by `python -m src.train model={method}`) or weights=official:<name>"
         )
-    chosen = min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic", path.name))
+    chosen = min(mine, key=lambda path: (cards[path]["experiment"]["dataset"] == "synthetic",
+                                         cards[path]["experiment"].get("task") == "gaussian_noise", path.name))
     return verify_card(chosen, cards[chosen])
 
 
