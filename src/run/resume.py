@@ -35,6 +35,9 @@ LAST = "last"
 PROGRAM = "python -m src.train"
 #: Overrides the resume command sets itself (a sweep's own choice of them is replaced).
 REPLACED = ("ckpt_path", "hydra.run.dir", "hydra.sweep.dir", "hydra.mode")
+#: Overrides that only start a run: a resumed run goes on from its own weights (src.train refuses ``init_weights``
+#: beside ``ckpt_path``).
+STARTS_ONLY = ("init_weights",)
 
 
 def own_last_checkpoint(run_dir: Path) -> Path:
@@ -118,8 +121,18 @@ def _shown(path: Path) -> str:
         return str(path)
 
 
+def _key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def resumed_overrides(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` less those that only start a run (:data:`STARTS_ONLY`): what resuming it takes beside its
+    ``ckpt_path``."""
+    return [o for o in overrides if _key(o) not in STARTS_ONLY]
+
+
 def _kept(overrides: Sequence[str]) -> list[str]:
-    return [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in REPLACED]
+    return [o for o in resumed_overrides(overrides) if _key(o) not in REPLACED]
 
 
 def run_command(overrides: Sequence[str], run_dir: Path, checkpoint: Path) -> str:

@@ -114,6 +114,16 @@ def test_an_interrupted_stage_resumes_from_its_last_checkpoint(tmp_path):
     assert f"trainer.val_check_interval={1000 // cpu_budget.VALIDATIONS}" in stage_command(stage, tmp_path, [])
 
 
+def test_a_stage_started_from_weights_resumes_from_its_own(tmp_path):
+    stage = Stage("omnet", "omnet", 0.25, 16, 1.0, 1.0, 1000, ["recipe=omnet_finetune", "init_weights=start.ckpt"])
+    assert "init_weights=start.ckpt" in stage_command(stage, tmp_path, [])
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"")
+    resumed = stage_command(stage, tmp_path, [])
+    assert "recipe=omnet_finetune" in resumed and not any(c.startswith("init_weights=") for c in resumed)
+    assert resumed[-1] == f"ckpt_path={tmp_path / 'checkpoints' / 'last.ckpt'}"
+
+
 def _fake_stage(run_dir: Path, rows: list[dict], test: dict | None = None, done: bool = True) -> None:
 
     (run_dir / "csv" / "version_0").mkdir(parents=True)

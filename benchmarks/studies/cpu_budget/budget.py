@@ -50,7 +50,7 @@ from benchmarks.studies.cpu_budget.recipes import (
     train_logged,
 )
 from src.run.reporting import read_csv_logs
-from src.run.resume import best_checkpoint, own_last_checkpoint
+from src.run.resume import best_checkpoint, own_last_checkpoint, resumed_overrides
 from src.utils.errors import ConfigError, exit_code_of
 from src.utils.files import write_atomic
 from src.utils.paths import with_folder, without_folder
@@ -312,14 +312,16 @@ def extend_plan(method_dir: Path) -> Stage:
 
 
 def stage_command(stage: Stage, run_dir: Path, extra: list[str], protocol: str = "real_airplane") -> list[str]:
-    """The ``src.train`` command line of one stage of ``protocol`` (resuming from its ``last.ckpt`` when there is one)."""
+    """The ``src.train`` command line of one stage of ``protocol`` (resuming from its ``last.ckpt`` when there is one,
+    then without the overrides that only start a run, such as ``init_weights``)."""
     data = PROTOCOLS[protocol].classifier if stage.model == CLASSIFIER else PROTOCOLS[protocol].experiment
+    last = own_last_checkpoint(run_dir)
+    overrides = [*stage.overrides, *extra]
     command = [sys.executable, "-m", "src.train", *data, *TRAINING, f"model={stage.model}", f"model_scale={stage.width}",
                f"data.batch_size={stage.batch}", f"trainer.max_steps={stage.max_steps}",
-               f"trainer.val_check_interval={stage.val_every}", *stage.overrides, *extra,
+               f"trainer.val_check_interval={stage.val_every}", *(resumed_overrides(overrides) if last.is_file() else overrides),
                f"callbacks.clock.budget_cpu_hours={stage.budget_cpu_h:.4f}",
                f"task_name=cpu_budget_{stage.name}", f"hydra.run.dir={run_dir}"]
-    last = run_dir / "checkpoints" / "last.ckpt"
     return command + ([f"ckpt_path={last}"] if last.is_file() else [])
 
 

@@ -37,6 +37,15 @@ def test_a_run_resumes_in_its_folder_with_its_overrides(tmp_path, hydra_job):
                        f"hydra.run.dir={run}", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]
 
 
+def test_a_run_started_from_weights_resumes_from_its_own(tmp_path, hydra_job):
+    run = tmp_path / "outputs" / "run"
+    hydra_job(RunMode.RUN, run, tmp_path / "unused", ["+exp=unseen_shapes", "init_weights=start.ckpt"],
+              [f"hydra.run.dir={run}"])
+    command = shlex.split(resume_command(run / "checkpoints" / "last.ckpt"))
+    assert command == ["python", "-m", "src.train", "+exp=unseen_shapes", f"hydra.run.dir={run}",
+                       f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]
+
+
 def test_a_job_of_a_multirun_prints_the_sweeps_command_with_ckpt_path_last(tmp_path, hydra_job):
     sweep = tmp_path / "multirun"
     sweep.mkdir()
