@@ -316,13 +316,14 @@ def stage_command(stage: Stage, run_dir: Path, extra: list[str], protocol: str =
     then without the overrides that only start a run, such as ``init_weights``)."""
     data = PROTOCOLS[protocol].classifier if stage.model == CLASSIFIER else PROTOCOLS[protocol].experiment
     last = own_last_checkpoint(run_dir)
+    resuming = last.is_file()
     overrides = [*stage.overrides, *extra]
     command = [sys.executable, "-m", "src.train", *data, *TRAINING, f"model={stage.model}", f"model_scale={stage.width}",
                f"data.batch_size={stage.batch}", f"trainer.max_steps={stage.max_steps}",
-               f"trainer.val_check_interval={stage.val_every}", *(resumed_overrides(overrides) if last.is_file() else overrides),
+               f"trainer.val_check_interval={stage.val_every}", *(resumed_overrides(overrides) if resuming else overrides),
                f"callbacks.clock.budget_cpu_hours={stage.budget_cpu_h:.4f}",
                f"task_name=cpu_budget_{stage.name}", f"hydra.run.dir={run_dir}"]
-    return command + ([f"ckpt_path={last}"] if last.is_file() else [])
+    return command + ([f"ckpt_path={last}"] if resuming else [])
 
 
 #: Planning composes configs (Hydra's global state) and times steps in this process: one method at a time.
